@@ -1,0 +1,3 @@
+"""DanceGraph: music in, dance out."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,150 @@
+"""The constraint spec: what a user asks of a dance (DESIGN.md §5).
+
+One pydantic model shared by the API (request validation and ``openapi.yaml``), the CLI
+(``--spec FILE``) and the graph search. Every field has a default, so ``{}`` plus a dataset is a
+valid spec; unknown fields are rejected (``extra="forbid"``) so typos never pass silently.
+Times are seconds from the start of the song; bar indices count from 0.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, HttpUrl, field_validator, model_validator
+
+_NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Weights(_Strict):
+    """Cost weights: C = data·Σ C_d + transition·Σ C_t + structure·Σ C_s (DESIGN.md §4)."""
+
+    data: float = Field(1.0, ge=0, description="λ10: weight of the per-bar data term")
+    transition: float = Field(2.0, ge=0, description="λ11: weight of the transition term (novelty)")
+    style: float = Field(1.0, ge=0, description="λ12: style distance inside the data term")
+    rhythm: float = Field(1.5, ge=0, description="λ13: rhythm-signature distance inside the data term")
+    structure: float = Field(1000.0, ge=0, description="ζ: penalty per violated repeat/mirror pair")
+
+
+class StructureRules(_Strict):
+    repeat: bool = Field(True, description="same phrase label and index in different occurrences → same node")
+    mirror: bool = Field(True, description="same occurrence, same meter identity → mirrored nodes")
+
+
+BarRange = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
+SecondRange = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]
+
+
+class _Ranged(_Strict):
+    bars: BarRange | None = Field(None, description="inclusive bar range [first, last]")
+    seconds: SecondRange | None = Field(None, description="time range [start, end] in seconds")
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        for name in ("bars", "seconds"):
+            rng = getattr(self, name)
+            if rng is not None and rng[0] > rng[1]:
+                raise ValueError(f"{name} range must be [start, end] with start <= end")
+        if self.bars is not None and self.seconds is not None:
+            raise ValueError("give either bars or seconds, not both")
+        return self
+
+
+class Include(_Ranged):
+    """Pin a node (``TAKE:BAR``, optionally ``~AUG``) at the given bars."""
+
+    node: str = Field(..., description="node id, e.g. '60_03:12' or '60_03:12~m' (mirrored)")
+
+    @field_validator("node")
+    @classmethod
+    def _node_id(cls, value: str) -> str:
+        if "*" in value or not _NODE_PATTERN.match(value):
+            raise ValueError("node must look like 'TAKE:BAR' or 'TAKE:BAR~AUG'")
+        return value
+
+
+class Exclude(_Ranged):
+    """Never use the matching nodes (optionally only inside a bar or time range)."""
+
+    node: str | None = Field(None, description="node id or take wildcard, e.g. '61_07:*'")
+    tag: str | None = Field(None, description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'")
+
+    @model_validator(mode="after")
+    def _one_target(self):
+        if (self.node is None) == (self.tag is None):
+            raise ValueError("an exclude names exactly one of node or tag")
+        if self.node is not None and not _NODE_PATTERN.match(self.node):
+            raise ValueError("node must look like 'TAKE:BAR', 'TAKE:BAR~AUG' or 'TAKE:*'")
+        return self
+
+
+class Waypoint(_Strict):
+    """The root must pass within ``tolerance`` metres of ``position`` (x, z) at ``second``."""
+
+    second: float = Field(..., ge=0)
+    position: Annotated[list[float], Field(min_length=2, max_length=2)]
+    tolerance: float = Field(0.5, gt=0)
+
+
+class Stage(_Strict):
+    """Rectangle on the ground plane (metres) that the root trajectory must stay inside."""
+
+    x: Annotated[list[float], Field(min_length=2, max_length=2)]
+    z: Annotated[list[float], Field(min_length=2, max_length=2)]
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.x[0] >= self.x[1] or self.z[0] >= self.z[1]:
+            raise ValueError("stage bounds must be [min, max] with min < max")
+        return self
+
+
+class SignatureTarget(_Strict):
+    """Follow a motif signature: the dataset's own, or a reference take's."""
+
+    target: str = Field("dataset", description="'dataset' or a take id of the dataset, e.g. '60_03'")
+    weight: float = Field(0.5, ge=0)
+
+
+class MotifPin(_Strict):
+    bar: int = Field(..., ge=0)
+    motif: int = Field(..., ge=0)
+
+
+class Output(_Strict):
+    formats: list[Literal["bvh", "fbx"]] = Field(default_factory=lambda: ["bvh", "fbx"], min_length=1)
+    fps: Literal[30, 60] = 30
+    foot_cleanup: bool = True
+
+
+class Spec(_Strict):
+    """A user's constraint spec. Only ``dataset`` is needed, and it has a default."""
+
+    dataset: str = Field("cmu-salsa", pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")
+    alternatives: int = Field(3, ge=1, le=10)
+    seed: int = Field(0, ge=0)
+    weights: Weights = Field(default_factory=Weights)
+    transition_threshold: float = Field(20.0, gt=0, description="δT: largest transition cost of an edge")
+    structure: StructureRules = Field(default_factory=StructureRules)
+    include: list[Include] = Field(default_factory=list, max_length=1000)
+    exclude: list[Exclude] = Field(default_factory=list, max_length=1000)
+    waypoints: list[Waypoint] = Field(default_factory=list, max_length=1000)
+    stage: Stage | None = None
+    signature: SignatureTarget | None = None
+    motifs: list[MotifPin] = Field(default_factory=list, max_length=1000)
+    recreate: str | None = Field(None, description="take id whose motif sequence to re-create on this music")
+    output: Output = Field(default_factory=Output)
+    callback_url: HttpUrl | None = None
+
+    @model_validator(mode="after")
+    def _waypoints_on_stage(self):
+        if self.stage is not None:
+            for i, wp in enumerate(self.waypoints):
+                x, z = wp.position
+                if not (self.stage.x[0] <= x <= self.stage.x[1] and self.stage.z[0] <= z <= self.stage.z[1]):
+                    raise ValueError(f"waypoints[{i}] lies outside the stage")
+        return self
