@@ -1,0 +1,230 @@
+"""Music analysis accuracy and speed on generated songs with exact ground truth, and the outputs
+for the CC recordings in ../shared/datasets/music/cc.
+
+Usage: ``python bench/bench_music.py [--songs N] [--hard N] [--no-cc]``.
+
+Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
+- beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
+- meter accuracy: tracked meter == generated meter;
+- boundary F: inner phrase boundaries at ±3 s against the generated section starts;
+- repeats alike: share of pairs of same-label sections whose (majority) labels agree;
+  distinct apart: share of pairs of different-label sections whose labels differ;
+- signature top-3: share of 4/4 bars whose generated accent pattern (nearest common signature)
+  is among the top 3 — on the generated bar grid, so tracker errors do not count;
+- "structure on true bars": boundary F / repeats alike with the generator's bars given, i.e. the
+  structure stage alone;
+- CPU seconds per minute of audio (``time.process_time``, warm: after one song analysed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from dancegraph.music.analysis import analyze, four_beat_bars, phrase_unit  # noqa: E402
+from dancegraph.music.features import frame_features  # noqa: E402
+from dancegraph.music.generator import bar_grid, generate_song, write_song  # noqa: E402
+from dancegraph.music.structure import analyze_structure  # noqa: E402
+from dancegraph.paths import shared_dir  # noqa: E402
+from dancegraph.rhythm.music import music_signatures  # noqa: E402
+from dancegraph.rhythm.signatures import nearest_common, to_bits  # noqa: E402
+
+
+def f_measure(est, ref, tol: float) -> float:
+    """One-to-one matching within ``tol`` seconds (greedy by distance); F = 2PR / (P + R)."""
+    est, ref = np.sort(np.asarray(est, float)), np.sort(np.asarray(ref, float))
+    if len(est) == 0 and len(ref) == 0:
+        return 1.0
+    if len(est) == 0 or len(ref) == 0:
+        return 0.0
+    d = np.abs(est[:, None] - ref[None, :])
+    pairs = sorted(zip(*np.nonzero(d <= tol), strict=True), key=lambda p: d[p])
+    used_e, used_r, hit = set(), set(), 0
+    for i, j in pairs:
+        if i not in used_e and j not in used_r:
+            used_e.add(i)
+            used_r.add(j)
+            hit += 1
+    p, r = hit / len(est), hit / len(ref)
+    return 0.0 if hit == 0 else 2 * p * r / (p + r)
+
+
+def label_agreement(
+    sections: list[dict], bar_starts: np.ndarray, tags: list[dict]
+) -> tuple[list[bool], list[bool]]:
+    """(alike, apart) pair outcomes: same-label section pairs labelled alike, different-label
+    pairs labelled apart, using each section's majority label over the bars starting inside it."""
+
+    def majority(sec: dict) -> str | None:
+        labs = [
+            tags[i]["label"]
+            for i, t in enumerate(bar_starts)
+            if sec["start_s"] - 0.05 <= t < sec["end_s"] - 0.05
+        ]
+        return max(sorted(set(labs)), key=labs.count) if labs else None
+
+    maj = [majority(s) for s in sections]
+    alike, apart = [], []
+    for i in range(len(sections)):
+        for j in range(i + 1, len(sections)):
+            if sections[i]["label"] == sections[j]["label"]:
+                alike.append(maj[i] is not None and maj[i] == maj[j])
+            else:
+                apart.append(maj[i] != maj[j])
+    return alike, apart
+
+
+def true_dance_bars(truth: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The generator's beats grouped by the analysis bar rule (exact beats, exact meter)."""
+    beats = np.asarray(truth["beats"])
+    pos = np.asarray(truth["beat_positions"])
+    bars, grid, _ = four_beat_bars(beats, pos, truth["meter"], truth["duration_s"])
+    return bars, grid
+
+
+def run_generated(n_songs: int, n_hard: int, out: Path) -> list[dict]:
+    rows = []
+    seeds = [(1000 + i, False) for i in range(n_songs)] + [(2000 + i, True) for i in range(n_hard)]
+    # Warm-up: the tracker's first call loads weights and compiles; not counted.
+    warm = generate_song(
+        999, form=["A", "B"], section_bars={"A": 4, "B": 4}, tempo_bpm=120, meter=4
+    )
+    analyze(warm.y, warm.sr)
+    for seed, hard in seeds:
+        song = generate_song(seed, hard=hard)
+        wav, _ = write_song(song, out, f"song_{seed}")
+        tr = song.truth
+        t0 = time.process_time()
+        a = analyze(wav)
+        cpu = time.process_time() - t0
+        ref_bounds = [s["start_s"] for s in tr["sections"][1:]]
+        est_bounds = [a.bars[p["start_bar"], 0] for p in a.phrases[1:]]
+        alike, apart = label_agreement(tr["sections"], a.bars[:, 0], a.tags)
+        # The structure stage alone, on the true bars.
+        tbars, tgrid = true_dance_bars(tr)
+        ff = frame_features(song.y, song.sr)
+        st = analyze_structure(ff, tbars, unit=phrase_unit(tr["meter"]))
+        t_alike, _ = label_agreement(tr["sections"], tbars[:, 0], st.tags)
+        t_bounds = [tbars[p["start_bar"], 0] for p in st.phrases[1:]]
+        sig_hits = []
+        if tr["meter"] == 4:
+            _, g = bar_grid(tr)
+            _, topk, _ = music_signatures(ff.accent, ff.frame_rate, g)
+            for b, bar in enumerate(tr["bars"]):
+                sig_hits.append(int(nearest_common(to_bits(bar["accent_signature"]))) in topk[b])
+        rows.append(
+            {
+                "seed": seed,
+                "hard": hard,
+                "cases": ",".join(c.split("_")[0] for c in tr["hard_cases"]),
+                "bpm": tr["tempo_bpm"],
+                "meter": tr["meter"],
+                "est_bpm": a.tempo_bpm,
+                "est_meter": a.meter,
+                "dur": song.duration_s,
+                "beat_f": f_measure(a.beats, tr["beats"], 0.07),
+                "down_f": f_measure(a.downbeats, tr["downbeats"], 0.07),
+                "bound_f": f_measure(est_bounds, ref_bounds, 3.0),
+                "alike": alike,
+                "apart": apart,
+                "true_bound_f": f_measure(t_bounds, ref_bounds, 3.0),
+                "true_alike": t_alike,
+                "sig_top3": sig_hits,
+                "cpu_per_min": cpu / (song.duration_s / 60),
+                "form": "".join(s["label"][0] for s in tr["sections"]),
+                "est_form": "".join(p["label"] for p in a.phrases),
+            }
+        )
+        r = rows[-1]
+        print(
+            f"{seed:5d} {'hard' if hard else '    '} {r['cases']:<22} {r['bpm']:6.1f} {r['meter']}"
+            f" | {r['est_bpm']:6.1f} {r['est_meter']} | beatF {r['beat_f']:.2f} downF {r['down_f']:.2f}"
+            f" boundF {r['bound_f']:.2f} (true bars {r['true_bound_f']:.2f}) alike {_mean(r['alike']):.2f}"
+            f" | {r['form']:<9} {r['est_form']:<12} | {r['cpu_per_min']:.2f} s/min",
+            flush=True,
+        )
+    return rows
+
+
+def _mean(xs) -> float:
+    xs = list(xs)
+    return float(np.mean(xs)) if xs else float("nan")
+
+
+def summarise(rows: list[dict]) -> None:
+    print()
+    print(
+        f"{'set':<8} {'songs':>5} {'beat F':>7} {'down F':>7} {'meter':>6} {'bound F':>8} {'alike':>6} {'apart':>6}"
+        f" {'bF true':>8} {'alike true':>10} {'sig top3':>9} {'CPU s/min':>10}"
+    )
+    for name, sel in (
+        ("normal", [r for r in rows if not r["hard"]]),
+        ("hard", [r for r in rows if r["hard"]]),
+        ("all", rows),
+    ):
+        if not sel:
+            continue
+        print(
+            f"{name:<8} {len(sel):>5} {_mean(r['beat_f'] for r in sel):7.3f} {_mean(r['down_f'] for r in sel):7.3f}"
+            f" {_mean(r['meter'] == r['est_meter'] for r in sel):6.2f} {_mean(r['bound_f'] for r in sel):8.3f}"
+            f" {_mean(x for r in sel for x in r['alike']):6.3f} {_mean(x for r in sel for x in r['apart']):6.3f}"
+            f" {_mean(r['true_bound_f'] for r in sel):8.3f} {_mean(x for r in sel for x in r['true_alike']):10.3f}"
+            f" {_mean(x for r in sel for x in r['sig_top3']):9.3f} {statistics.median(r['cpu_per_min'] for r in sel):10.2f}"
+        )
+    print(
+        "targets: downbeat F >= 0.95 (>= 0.85 hard), meter 100 %, boundary F >= 0.85, repeats alike >= 0.9,"
+        " <= 1.5 s CPU per minute (median, warm)"
+    )
+
+
+def run_cc() -> None:
+    cc = shared_dir() / "datasets" / "music" / "cc"
+    files = sorted(cc.glob("*.ogg")) if cc.is_dir() else []
+    if not files:
+        print("\nCC tracks: not found at", cc)
+        return
+    print(
+        f"\n{'CC track':<44} {'dur':>6} {'BPM':>6} {'conf':>5} {'meter':>5} {'bars':>5} {'phrases':>7}  form / phrase lengths   CPU s/min"
+    )
+    for f in files:
+        t0 = time.process_time()
+        try:
+            a = analyze(f)
+        except Exception as exc:  # report and go on: one track must not hide the others
+            print(f"{f.name[:44]:<44} error: {exc}")
+            continue
+        cpu = time.process_time() - t0
+        lens = ",".join(str(p["end_bar"] - p["start_bar"]) for p in a.phrases)
+        form = "".join(p["label"] for p in a.phrases)
+        print(
+            f"{f.name[:44]:<44} {a.duration_s:6.1f} {a.tempo_bpm:6.1f} {a.tempo_confidence:5.2f} {a.meter:>5} {a.n_bars:>5}"
+            f" {len(a.phrases):>7}  {form} [{lens}]  {cpu / (a.duration_s / 60):.2f}"
+        )
+        if a.warnings:
+            print(f"{'':<44} warnings: {'; '.join(a.warnings)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--songs", type=int, default=12, help="normal generated songs")
+    ap.add_argument("--hard", type=int, default=6, help="hard generated songs")
+    ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = run_generated(args.songs, args.hard, Path(tmp))
+    summarise(rows)
+    if not args.no_cc:
+        run_cc()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

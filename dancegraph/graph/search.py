@@ -1,0 +1,913 @@
+"""Path search: one graph node per music bar (ChoreoMaster §5, DESIGN.md §4).
+
+Cost C = λ10 Σ C_d(i) + λ11 Σ C_t(i, i+1) + ζ Σ C_s + user terms, with
+C_d(i) = λ12‖z_Mi − z_Di‖ + λ13 min_k G_r(R_Mi^k, R_Di) and C_t the edge cost T.
+
+Structure constraints hold by construction, not by the penalty ζ alone: bars tied by the repeat
+rule (same phrase label and index, different occurrences) or the mirror rule (same occurrence,
+same meter identity; consecutive members alternate between a node and its mirror) are merged into
+one *variable* with a parity (union-find with parity). The dynamic programme runs over the chain
+of variables in song order of their first appearance, with the data terms of all tied bars summed
+into their variable, so repeated phrases are solved jointly. Song bars that repeat an earlier
+variable are filled from each DP state's own history, and their transitions, stage and waypoint
+terms are costed exactly along the way (``_dp.forward``). Where the rules contradict each other
+(an odd cycle of mirror and repeat ties) the pair is reported as violated with its reason and
+charged ζ. Transitions between copies that are not graph edges are allowed at their true cost T
+plus an off-graph penalty δT, so ties never make a song unsolvable.
+
+User controls (``Spec``): include (pin a node at a bar, or the best bar of a range), exclude
+(node, take wildcard or tag, optionally in a bar or time range), waypoints, stage bounds (on each
+bar's root path, checked conservatively with the bar's largest root excursion), δT (edges above it
+are not used), weights, motif pins, a target motif signature, re-creating a take's motif sequence.
+Alternatives: the search runs again with a penalty on nodes (and their mirrors) used by earlier
+alternatives, so alternatives share few nodes; each reports its own unpenalised cost.
+
+Speed and its price: the DP keeps a beam of the ``BEAM`` cheapest states per chain step (every
+state on graphs of up to ``EXACT_NODES`` nodes, where it is the exact Viterbi when no ties or
+trajectory terms are involved) and runs in a numba kernel (``_dp``). A state's copies and root pose
+follow its own best history (one history per node, as Viterbi keeps), so tied copies and
+trajectories are costed exactly along the paths kept, not over all histories. With a stage or
+waypoints a node keeps up to ``POSITION_SLOTS`` states that end in different places, and states
+that can no longer reach a later waypoint at the graph's top speed are penalised early; with
+structure ties on graphs of up to ``EXACT_NODES`` nodes, up to ``POSITION_SLOTS`` states with
+different predecessors (k-best histories: on the salsa graph this lowers the cost of a 148 s song
+by about a quarter, at about 3× the search time).
+Stage and waypoint terms are effectively hard (1e5 per metre); a best path that still misses one
+raises ``SpecError(code='constraint_conflict')`` naming it. A target motif signature is followed
+by planning a motif per bar whose histogram matches the target (an optimal assignment) and
+searching with a penalty off the plan; the result keeps the better of planned and plain paths
+by cost + χ² and reports its χ².
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dancegraph.embed import descriptor
+from dancegraph.errors import NotFoundError, SpecError
+from dancegraph.graph import _dp, choreography
+from dancegraph.graph.artifact import MotionGraph
+from dancegraph.motion import quat
+from dancegraph.motion.skeleton import Motion
+from dancegraph.rhythm.signatures import COMMON_DISTANCES
+from dancegraph.spec import Spec
+
+BEAM = 1024  # states per chain step on large graphs
+EXACT_NODES = 4096  # graphs up to this size are searched exactly (beam = every node)
+DENSE_LIMIT = 64
+STAGE_WEIGHT = 1.0e5  # per metre outside the stage: effectively hard
+WAYPOINT_WEIGHT = 1.0e5  # per metre beyond a waypoint's tolerance: effectively hard
+DIVERSITY_PENALTY = 40.0  # per reuse of a node (or its mirror) of an earlier alternative
+POSITION_SLOTS = 4  # states kept per node when stage or waypoints are set
+POSITION_CELL = 0.1  # metres (L1) that make two states' root positions different
+SIGNATURE_SCALE = 100.0  # cost of a χ² of 1, per bar and per unit of signature.weight
+SIGNATURE_STEPS = (8.0, 64.0)  # penalties per bar off the motif plan
+RECREATE_WEIGHT = 100.0  # per bar whose motif differs from the reference take's
+
+
+@dataclass
+class Alternative:
+    nodes: list[str]
+    index: np.ndarray
+    cost: float
+    per_bar: list[dict]
+    violations: list[dict]
+    placements: np.ndarray  # (T, 3) x, z, yaw of each bar's first frame
+    choreography: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "nodes": self.nodes,
+            "cost": round(float(self.cost), 4),
+            "per_bar": self.per_bar,
+            "violations": self.violations,
+            "placements": np.round(self.placements, 4).tolist(),
+            "choreography": self.choreography,
+        }
+
+
+@dataclass
+class SearchResult:
+    alternatives: list[Alternative]
+    report: dict
+
+    def to_dict(self) -> dict:
+        return {
+            "alternatives": [a.to_dict() for a in self.alternatives],
+            "constraints": self.report,
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# music side
+
+
+def _music_arrays(analysis) -> dict:
+    bars = np.asarray(analysis.bars, dtype=float).reshape(-1, 2)
+    n = bars.shape[0]
+    if n == 0:
+        raise SpecError("the music has no bars to dance to", code="no_bars", field="analysis.bars")
+    topk = np.asarray(analysis.signature_topk, dtype=int).reshape(n, -1)
+    onset = np.asarray(analysis.bar_onset_rms, dtype=float)
+    tags = list(analysis.tags) if analysis.tags is not None else []
+    if len(tags) != n:
+        tags = [{"label": f"x{t}", "occurrence": 0, "index": 0, "meter_id": t} for t in range(n)]
+    return {"bars": bars, "n": n, "topk": topk, "onset": onset, "tags": tags}
+
+
+def _bars_in(spec_range, seconds, bars: np.ndarray, field_name: str) -> np.ndarray:
+    """Bar indices covered by an inclusive bar range or a time range (all bars when neither)."""
+    n = bars.shape[0]
+    if spec_range is not None:
+        a, b = spec_range
+        if a >= n:
+            raise SpecError(
+                f"{field_name}: bar {a} is past the song's last bar {n - 1}",
+                code="constraint_conflict",
+                field=field_name,
+            )
+        return np.arange(a, min(b, n - 1) + 1)
+    if seconds is not None:
+        a, b = seconds
+        sel = np.nonzero((bars[:, 1] > a) & (bars[:, 0] <= b))[0]
+        if sel.size == 0:
+            raise SpecError(
+                f"{field_name}: no bar lies in [{a}, {b}] s",
+                code="constraint_conflict",
+                field=field_name,
+            )
+        return sel
+    return np.arange(n)
+
+
+# --------------------------------------------------------------------------------------------
+# structure ties: union-find with parity
+
+
+class _Ties:
+    def __init__(self, n: int):
+        self.parent = np.arange(n)
+        self.parity = np.zeros(n, dtype=np.int8)  # parity relative to parent
+
+    def find(self, a: int) -> tuple[int, int]:
+        p = 0
+        while self.parent[a] != a:
+            p ^= int(self.parity[a])
+            a = int(self.parent[a])
+        return a, p
+
+    def union(self, a: int, b: int, par: int) -> bool:
+        """Tie bar b to bar a with parity ``par``; False when that contradicts earlier ties."""
+        ra, pa = self.find(a)
+        rb, pb = self.find(b)
+        if ra == rb:
+            return (pa ^ pb) == par
+        if ra > rb:
+            ra, rb, pa, pb = rb, ra, pb, pa
+        self.parent[rb] = ra
+        self.parity[rb] = pa ^ pb ^ par
+        return True
+
+
+def structure_pairs(
+    tags: list[dict], repeat: bool, mirror: bool
+) -> list[tuple[int, int, int, str]]:
+    """Tied bar pairs ``(a, b, parity, rule)``: repeat pairs (parity 0) link consecutive
+    occurrences of the same (label, index); mirror pairs (parity 1) link consecutive bars of one
+    occurrence with the same meter identity."""
+    pairs = []
+    if repeat:
+        groups: dict = {}
+        for t, tag in enumerate(tags):
+            groups.setdefault((tag.get("label"), tag.get("index")), []).append(
+                (tag.get("occurrence"), t)
+            )
+        for members in groups.values():
+            members.sort()
+            for (oa, a), (ob, b) in zip(members, members[1:], strict=False):
+                if oa != ob:
+                    pairs.append((a, b, 0, "repeat"))
+    if mirror:
+        groups = {}
+        for t, tag in enumerate(tags):
+            if tag.get("meter_id") is None:
+                continue
+            groups.setdefault(
+                (tag.get("label"), tag.get("occurrence"), tag.get("meter_id")), []
+            ).append(t)
+        for members in groups.values():
+            for a, b in zip(members, members[1:], strict=False):
+                pairs.append((a, b, 1, "mirror"))
+    return pairs
+
+
+# --------------------------------------------------------------------------------------------
+# node matching
+
+
+def _match_nodes(
+    graph: MotionGraph, node: str | None, tag: str | None, field_name: str
+) -> np.ndarray:
+    if tag is not None:
+        if tag not in graph.tags:
+            raise NotFoundError(
+                f"{field_name}: unknown tag {tag!r} (known: {', '.join(graph.tags)})",
+                code="unknown_tag",
+                field=field_name,
+            )
+        bit = np.uint32(graph.tag_bit(tag))
+        return np.nonzero(np.asarray(graph.node_tags) & bit)[0]
+    take, _, rest = node.partition(":")
+    if rest == "*":
+        if take not in graph.clips:
+            raise NotFoundError(
+                f"{field_name}: unknown take {take!r}", code="unknown_node", field=field_name
+            )
+        return np.nonzero(np.asarray(graph.node_clip) == graph.clips.index(take))[0]
+    if not graph.has_node(node):
+        raise NotFoundError(
+            f"{field_name}: node {node!r} does not exist in graph {graph.name}",
+            code="unknown_node",
+            field=field_name,
+        )
+    return np.array([graph.node_index(node)])
+
+
+# --------------------------------------------------------------------------------------------
+# the search
+
+
+def music_style(music: dict) -> np.ndarray:
+    """Descriptor style of each music bar ``(T, 32)``."""
+    dur = music["bars"][:, 1] - music["bars"][:, 0]
+    if music["onset"].ndim == 3 and music["onset"].shape[0] == music["n"]:
+        return descriptor.embed_music(dur, music["onset"])
+    return descriptor.embed(
+        np.column_stack(
+            [np.log2(240.0 / np.maximum(dur, 1e-3) / 120.0)] + [np.zeros(music["n"])] * 7
+        )
+    )
+
+
+def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: Spec) -> np.ndarray:
+    """C_d for every bar and node ``(T, N) float32``: λ10·(λ12‖z_M − z_D‖ + λ13 min_k G_r).
+
+    ``zm (T, 32)`` music style; ``sig_cost (T, 13)`` min over the bar's top-K signatures of the
+    distance to each common signature. Computed in place, float32 (the hot path of a query).
+    """
+    w = spec.weights
+    zd = np.asarray(graph.style, dtype=np.float32)
+    out = zm.astype(np.float32) @ zd.T
+    out *= -2.0
+    out += _style_sq(graph)[None, :]
+    out += (zm.astype(np.float32) ** 2).sum(1)[:, None]
+    np.maximum(out, 0.0, out=out)
+    np.sqrt(out, out=out)
+    out *= w.style
+    out += np.take(
+        (w.rhythm * sig_cost).astype(np.float32), np.asarray(graph.signature, dtype=np.intp), axis=1
+    )
+    out *= w.data
+    return out
+
+
+def _style_sq(graph: MotionGraph) -> np.ndarray:
+    """‖z_D‖² per node (cached on the graph)."""
+    cache = graph.__dict__.setdefault("_cache", {})
+    if "style_sq" not in cache:
+        zd = np.asarray(graph.style, dtype=np.float32)
+        cache["style_sq"] = (zd * zd).sum(1)
+    return cache["style_sq"]
+
+
+def bar_terms(
+    graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, nodes: np.ndarray, spec: Spec
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted style and rhythm terms ``(T,)`` of the chosen ``nodes (T,)`` (for explain)."""
+    w = spec.weights
+    zd = np.asarray(graph.style)[nodes].astype(np.float64)
+    style = w.data * w.style * np.linalg.norm(zm - zd, axis=1)
+    rhythm = (
+        w.data
+        * w.rhythm
+        * sig_cost[np.arange(len(nodes)), np.asarray(graph.signature)[nodes].astype(int)]
+    )
+    return style, rhythm
+
+
+def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None) -> SearchResult:
+    """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars.
+
+    ``beam``: states kept per chain step; default exact (every node) up to ``EXACT_NODES``
+    nodes, else ``BEAM``.
+    """
+    if beam is None:
+        beam = POSITION_SLOTS * graph.n_nodes if graph.n_nodes <= EXACT_NODES else BEAM
+    music = _music_arrays(analysis)
+    n_bars, n_nodes = music["n"], graph.n_nodes
+    zm = music_style(music)
+    sig_cost = COMMON_DISTANCES[music["topk"]].min(axis=1)  # (T, 13)
+    data = data_costs(graph, zm, sig_cost, spec)
+    # restrictions: a mask for all bars, and masks of single bars (None: everything allowed)
+    every_ok: np.ndarray | None = None
+    bar_ok: dict[int, np.ndarray] = {}
+    report: dict = {"pins": [], "excluded_bars": 0, "structure_pairs": 0, "conflicts": []}
+
+    def restrict(bars: np.ndarray, keep: np.ndarray) -> None:
+        nonlocal every_ok
+        if bars.size == n_bars:
+            every_ok = keep if every_ok is None else every_ok & keep
+            return
+        for t in bars.tolist():
+            bar_ok[t] = keep if t not in bar_ok else bar_ok[t] & keep
+
+    def allowed_at(t: int) -> np.ndarray:
+        ok = np.ones(n_nodes, dtype=bool) if every_ok is None else every_ok.copy()
+        if t in bar_ok:
+            ok &= bar_ok[t]
+        return ok
+
+    indptr, indices, costs = edges_below(graph, spec.transition_threshold)
+
+    for i, ex in enumerate(spec.exclude):
+        fname = f"exclude[{i}]"
+        nodes = _match_nodes(graph, ex.node, ex.tag, f"{fname}.{'tag' if ex.tag else 'node'}")
+        bars = _bars_in(ex.bars, ex.seconds, music["bars"], fname)
+        keep = np.ones(n_nodes, dtype=bool)
+        keep[nodes] = False
+        restrict(bars, keep)
+        report["excluded_bars"] += int(bars.size)
+
+    motif = np.asarray(graph.motif)
+    for i, mp in enumerate(spec.motifs):
+        fname = f"motifs[{i}]"
+        k = int(graph.manifest.get("motifs", {}).get("k", motif.max() + 1))
+        if mp.motif >= k:
+            raise NotFoundError(
+                f"{fname}.motif: the graph has motifs 0..{k - 1}",
+                code="unknown_motif",
+                field=f"{fname}.motif",
+            )
+        if mp.bar >= n_bars:
+            raise SpecError(
+                f"{fname}.bar: the song has {n_bars} bars",
+                code="constraint_conflict",
+                field=f"{fname}.bar",
+            )
+        restrict(np.array([mp.bar]), motif == mp.motif)
+    target_sig = None
+    if spec.signature is not None:
+        target_sig = _target_signature(graph, spec.signature.target, "signature.target")
+    recreate = None
+    if spec.recreate is not None:
+        try:
+            seq = choreography.take_motif_sequence(graph, spec.recreate)
+        except ValueError as exc:
+            raise NotFoundError(
+                f"recreate: unknown take {spec.recreate!r}", code="unknown_node", field="recreate"
+            ) from exc
+        recreate = np.resize(seq, n_bars)
+        data += RECREATE_WEIGHT * (motif[None, :] != recreate[:, None])
+
+    # pins
+    pinned: dict[int, tuple[int, str]] = {}
+    for i, inc in enumerate(spec.include):
+        fname = f"include[{i}]"
+        node = _match_nodes(graph, inc.node, None, f"{fname}.node")[0]
+        bars = _bars_in(inc.bars, inc.seconds, music["bars"], fname)
+        ok = np.array([t for t in bars.tolist() if allowed_at(t)[node]], dtype=np.int64)
+        if ok.size == 0:
+            raise SpecError(
+                f"{fname}: node {inc.node} is excluded wherever it is asked for",
+                code="constraint_conflict",
+                field=fname,
+            )
+        t = int(ok[np.argmin(data[ok, node])]) if ok.size > 1 else int(ok[0])
+        if t in pinned and pinned[t][0] != node:
+            raise SpecError(
+                f"{fname}: bar {t} is already pinned to {graph.node_ids[pinned[t][0]]} by {pinned[t][1]}",
+                code="constraint_conflict",
+                field=fname,
+            )
+        pinned[t] = (node, fname)
+        report["pins"].append({"field": fname, "node": inc.node, "bar": t})
+
+    # structure ties
+    ties = _Ties(n_bars)
+    pairs = structure_pairs(music["tags"], spec.structure.repeat, spec.structure.mirror)
+    contradictions = []
+    for a, b, par, rule in pairs:
+        if not ties.union(a, b, par):
+            contradictions.append((a, b, par, rule))
+    report["structure_pairs"] = len(pairs)
+    roots = np.empty(n_bars, dtype=np.int64)
+    parity = np.empty(n_bars, dtype=np.int8)
+    for t in range(n_bars):
+        roots[t], parity[t] = ties.find(t)
+    # the root is the smallest bar of its group (union keeps the smaller root): parity 0 there
+    uniq, var = np.unique(roots, return_inverse=True)
+    n_vars = uniq.size
+    mirror_of = np.asarray(graph.mirror_of, dtype=np.int64)
+    has_mirror = mirror_of >= 0
+    safe_mirror = np.where(has_mirror, mirror_of, 0)
+
+    # per variable: the data terms of all its bars (a mirrored bar scores the node's mirror)
+    if n_vars == n_bars and not parity.any():
+        unary = data  # no ties: one variable per bar
+    else:
+        unary = np.zeros((n_vars, n_nodes), dtype=np.float32)
+        for t in range(n_bars):
+            if parity[t] == 0:
+                unary[var[t]] += data[t]
+            else:
+                unary[var[t]] += np.where(has_mirror, data[t][safe_mirror], np.inf)
+    var_ok: dict[int, np.ndarray] = {}
+    for t in range(n_bars):
+        if parity[t] == 0 and every_ok is None and t not in bar_ok:
+            continue
+        ok = allowed_at(t)
+        if parity[t] == 1:
+            ok = has_mirror & ok[safe_mirror]
+        v = int(var[t])
+        var_ok[v] = ok if v not in var_ok else var_ok[v] & ok
+    fixed: dict[int, tuple[int, str]] = {}
+    for t, (node, fname) in pinned.items():
+        v = int(var[t])
+        want = node if parity[t] == 0 else int(mirror_of[node])
+        if want < 0:
+            raise SpecError(
+                f"{fname}: bar {t} must mirror another bar but {graph.node_ids[node]} has no mirror",
+                code="constraint_conflict",
+                field=fname,
+            )
+        if v in fixed and fixed[v][0] != want:
+            raise SpecError(
+                f"{fname}: the repeat/mirror rules tie bar {t} to a bar pinned by {fixed[v][1]} to another node",
+                code="constraint_conflict",
+                field=fname,
+            )
+        if v in var_ok and not var_ok[v][want]:
+            raise SpecError(
+                f"{fname}: node {graph.node_ids[node]} is excluded at a bar tied to bar {t}",
+                code="constraint_conflict",
+                field=fname,
+            )
+        fixed[v] = (want, fname)
+    for v, (want, _) in fixed.items():
+        ok = np.zeros(n_nodes, dtype=bool)
+        ok[want] = True
+        var_ok[v] = ok
+    if var_ok and unary is data:
+        unary = data.copy()
+    for v, ok in var_ok.items():
+        unary[v, ~ok] = np.inf
+    n_allowed = np.isfinite(unary).sum(axis=1)
+    empty = np.nonzero(n_allowed == 0)[0]
+    if empty.size:
+        members = np.nonzero(var == empty[0])[0]
+        t = int(members[0])
+        if parity[members].any() and all(allowed_at(m).any() for m in members):
+            raise SpecError(
+                f"bars {members.tolist()} must mirror each other (structure.mirror) but the excludes leave no node with an allowed mirror",
+                code="constraint_conflict",
+                field="structure.mirror",
+            )
+        raise SpecError(
+            f"no node is allowed at bar {t}: the excludes (and motif pins) rule out every node",
+            code="constraint_conflict",
+            field=_blame(spec, t),
+        )
+
+    # chain of first appearances and the copies between them
+    first_bar = np.full(n_vars, n_bars, dtype=np.int64)
+    np.minimum.at(first_bar, var, np.arange(n_bars))
+    is_first = first_bar[var] == np.arange(n_bars)
+    chain_bar = np.nonzero(is_first)[0]
+    chain_var = var[chain_bar]
+    var_chain = np.empty(n_vars, dtype=np.int64)
+    var_chain[chain_var] = np.arange(chain_bar.size)
+    gap_ptr = np.zeros(chain_bar.size + 2, dtype=np.int64)
+    gap_bar = np.nonzero(~is_first)[0]
+    # copies before chain step c are those between chain_bar[c-1] and chain_bar[c]
+    owner = np.searchsorted(chain_bar, gap_bar)  # chain step that follows the copy (C: trailing)
+    counts = np.bincount(owner, minlength=chain_bar.size + 1)
+    gap_ptr[1:] = np.cumsum(counts)
+    gap_var = var[gap_bar]
+    gap_par = parity[gap_bar].astype(np.int64)
+
+    # stage, waypoints
+    stage = np.array([1.0, 0.0, 1.0, 0.0])
+    start = np.zeros(3)
+    if spec.stage is not None:
+        stage = np.array(
+            [spec.stage.x[0], spec.stage.x[1], spec.stage.z[0], spec.stage.z[1]], dtype=float
+        )
+        start[:2] = [stage[:2].mean(), stage[2:].mean()]
+    wp_bar, wp_idx, wp_pos, wp_tol = [], [], [], []
+    n_path = graph.root_path.shape[1]
+    for i, wp in enumerate(spec.waypoints):
+        bars = music["bars"]
+        if wp.second > bars[-1, 1]:
+            raise SpecError(
+                f"waypoints[{i}]: {wp.second} s is after the song's last bar",
+                code="constraint_conflict",
+                field=f"waypoints[{i}].second",
+            )
+        t = int(np.clip(np.searchsorted(bars[:, 0], wp.second, side="right") - 1, 0, n_bars - 1))
+        frac = (wp.second - bars[t, 0]) / max(bars[t, 1] - bars[t, 0], 1e-6)
+        wp_bar.append(t)
+        wp_idx.append(int(np.clip(round(frac * n_path), 0, n_path - 1)))
+        wp_pos.append(wp.position)
+        wp_tol.append(wp.tolerance)
+    wp = (
+        np.array(wp_bar, dtype=np.int64),
+        np.array(wp_idx, dtype=np.int64),
+        np.array(wp_pos, dtype=np.float64).reshape(-1, 2),
+        np.array(wp_tol, dtype=np.float64),
+    )
+
+    params = graph.manifest.get("params", {})
+    offgraph = float(spec.transition_threshold)
+    ctx = {
+        "graph": graph,
+        "indptr": _ro(indptr, np.int64),
+        "indices": _ro(indices, np.int32),
+        "costs": _ro(costs, np.float32),
+        "mirror_of": _ro(mirror_of, np.int64),
+        "w_pose": float(params.get("w_pose", 1.0)),
+        "w_style": float(params.get("w_style", 1.5)),
+        "offgraph": offgraph,
+        "stage": stage,
+        "start": start,
+        "wp": wp,
+        # several states per node (different root positions) when the trajectory matters
+        "track": spec.stage is not None or bool(spec.waypoints),
+        # several histories per node: different root positions (trajectory terms) or different
+        # predecessors (tied copies, whose costs depend on the history)
+        "slots": POSITION_SLOTS
+        if (
+            spec.stage is not None or spec.waypoints or (n_vars < n_bars and n_nodes <= EXACT_NODES)
+        )
+        else 1,
+        "zm": zm,
+        "sig_cost": sig_cost,
+        "recreate": recreate,
+        # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
+        "dense": n_allowed <= DENSE_LIMIT,
+        # transitions that are not edges are costed from the compressed features
+        "exit": _ro(graph.exit_pc, np.float32),
+        "entry": _ro(graph.entry_pc, np.float32),
+        "style": _ro(graph.style, np.float32),
+        "blocks": _ro(graph.manifest["pc_blocks"], np.int64),
+        "disp": _ro(graph.disp, np.float64),
+        "radius": _ro(graph.radius, np.float64),
+        "root_path": _ro(graph.root_path, np.float64),
+        "reach": float(
+            max(np.hypot(graph.disp[:, 0], graph.disp[:, 1]).max(), np.max(graph.radius))
+        )
+        if graph.n_nodes
+        else 0.0,
+    }
+    alternatives: list[Alternative] = []
+    bars_per_var = np.bincount(var, minlength=n_vars).astype(np.float32)
+    penalty = np.zeros(n_nodes, dtype=np.float32)
+    for k in range(spec.alternatives):
+        # the reuse penalty counts every bar a variable stands for
+        u = unary + bars_per_var[:, None] * penalty[None, :]
+        if target_sig is not None:
+            # the χ² to the target is not a per-bar cost: plan motifs (see below) and keep the
+            # path with the best cost + scale·χ²
+            scale = SIGNATURE_SCALE * spec.signature.weight * n_bars
+
+            def scored(nodes, scale=scale):
+                alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+                chi2 = choreography.chi_square(
+                    choreography.motif_signature(motif[nodes], len(target_sig)), target_sig
+                )
+                return (alt.cost + scale * chi2, alt, chi2, nodes)
+
+            best = scored(
+                _run(
+                    ctx,
+                    u,
+                    chain_var,
+                    chain_bar,
+                    gap_ptr,
+                    gap_bar,
+                    gap_var,
+                    gap_par,
+                    var_chain,
+                    beam,
+                    spec,
+                    var,
+                    parity,
+                    mirror_of,
+                )
+            )
+            if spec.signature.weight > 0:
+                # plan a motif per variable whose histogram follows the target, then search with a
+                # penalty on other motifs; keep whichever path has the lower cost + scale·χ²
+                k = len(target_sig)
+                best_by_motif = np.full((n_vars, k), np.inf)
+                for m in range(k):
+                    sel = motif == m
+                    if sel.any():
+                        best_by_motif[:, m] = u[:, sel].min(axis=1)
+                count = np.bincount(var, minlength=n_vars)
+                plan = choreography.plan_motifs(best_by_motif, count, target_sig)
+                for level in SIGNATURE_STEPS:
+                    off_plan = np.where(
+                        motif[None, :] != plan[:, None], np.float32(level), np.float32(0.0)
+                    )
+                    cand = scored(
+                        _run(
+                            ctx,
+                            u + off_plan,
+                            chain_var,
+                            chain_bar,
+                            gap_ptr,
+                            gap_bar,
+                            gap_var,
+                            gap_par,
+                            var_chain,
+                            beam,
+                            spec,
+                            var,
+                            parity,
+                            mirror_of,
+                        )
+                    )
+                    if cand[0] < best[0]:
+                        best = cand
+            _, alt, chi2, nodes = best
+            alt.choreography["signature_chi2"] = chi2
+            alt.choreography["target"] = spec.signature.target
+        else:
+            nodes = _run(
+                ctx,
+                u,
+                chain_var,
+                chain_bar,
+                gap_ptr,
+                gap_bar,
+                gap_var,
+                gap_par,
+                var_chain,
+                beam,
+                spec,
+                var,
+                parity,
+                mirror_of,
+            )
+            alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+        if recreate is not None:
+            alt.choreography["recreate_match"] = float(np.mean(motif[nodes] == recreate))
+        alternatives.append(alt)
+        used = np.unique(nodes)
+        penalty[used] += DIVERSITY_PENALTY
+        mirrored = mirror_of[used]
+        penalty[mirrored[mirrored >= 0]] += DIVERSITY_PENALTY
+    report["conflicts"] = [
+        {
+            "bars": [int(a), int(b)],
+            "rule": rule,
+            "reason": "the repeat and mirror rules contradict each other here",
+        }
+        for a, b, _, rule in contradictions
+    ]
+    report["variables"] = int(n_vars)
+    report["bars"] = int(n_bars)
+    return SearchResult(alternatives=alternatives, report=report)
+
+
+def edges_below(graph: MotionGraph, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The graph's CSR edges ``(indptr, indices, costs)`` with cost below ``threshold`` (δT, the
+    novelty control), keeping consecutive bars of a take (and their mirrors), which are always
+    linked. The graph's own arrays when its build threshold is not above ``threshold``."""
+    indptr = np.asarray(graph.indptr, dtype=np.int64)
+    indices = np.asarray(graph.indices, dtype=np.int32)
+    costs = np.asarray(graph.costs, dtype=np.float32)
+    if threshold >= graph.manifest.get("params", {}).get("threshold", np.inf) or costs.size == 0:
+        return indptr, indices, costs
+    src = np.repeat(np.arange(graph.n_nodes), np.diff(indptr))
+    clip, bar, kind = (np.asarray(a) for a in (graph.node_clip, graph.node_bar, graph.node_kind))
+    consecutive = (
+        (clip[src] == clip[indices])
+        & (bar[indices] == bar[src] + 1)
+        & (kind[src] == kind[indices])
+        & (kind[src] <= 1)
+    )
+    keep = (costs < threshold) | consecutive
+    new_ptr = np.zeros_like(indptr)
+    np.cumsum(np.bincount(src[keep], minlength=graph.n_nodes), out=new_ptr[1:])
+    return new_ptr, indices[keep], costs[keep]
+
+
+def _ro(a, dtype) -> np.ndarray:
+    """A read-only contiguous view (or converted copy) of a graph array for the kernel.
+
+    Memory-mapped artifacts are read-only; marking in-memory graphs' arrays the same way keeps
+    one compiled specialisation of the numba kernel for both.
+    """
+    out = np.ascontiguousarray(a, dtype=dtype).view()
+    out.flags.writeable = False
+    return out
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the search kernel on a two-node graph, so a service's
+    first real query does not pay for it."""
+    from dancegraph.graph.artifact import graph_from_arrays
+
+    n, d = 2, 4
+    z = np.zeros
+    arrays = {
+        "node_clip": z(n, np.int32),
+        "node_bar": np.arange(n, dtype=np.int32),
+        "node_kind": z(n, np.int8),
+        "node_tags": z(n, np.uint32),
+        "node_source": z((n, 2), np.int32),
+        "mirror_of": np.array([1, 0], np.int32),
+        "style": z((n, 32), np.float32),
+        "signature": z(n, np.int8),
+        "motif": z(n, np.int32),
+        "entry": z((n, d), np.float32),
+        "exit": z((n, d), np.float32),
+        "entry_pc": z((n, d), np.float32),
+        "exit_pc": z((n, d), np.float32),
+        "disp": z((n, 3), np.float32),
+        "radius": z(n, np.float32),
+        "root_path": z((n, 8, 2), np.float32),
+        "duration": np.ones(n, np.float32),
+        "indptr": np.array([0, 1, 2], np.int64),
+        "indices": np.array([1, 0], np.int32),
+        "costs": z(2, np.float32),
+        "motion_row": z(n, np.int32),
+        "root": z((1, 4, 3), np.float32),
+        "rotations": z((1, 4, 1, 4), np.float16),
+    }
+    manifest = {
+        "clips": ["w"],
+        "tags": ["original"],
+        "pc_blocks": [d],
+        "feature_blocks": [d],
+        "params": {},
+    }
+    graph = graph_from_arrays(arrays, manifest)
+    from types import SimpleNamespace
+
+    bars = np.array([[0.0, 2.0], [2.0, 4.0]])
+    analysis = SimpleNamespace(
+        bars=bars,
+        signature_topk=z((2, 3), int),
+        bar_onset_rms=np.ones((2, 2, 200)),
+        tags=[{"label": "A", "occurrence": o, "index": 0, "meter_id": 0} for o in (0, 1)],
+    )
+    search(graph, analysis, Spec(alternatives=1))
+    search(
+        graph,
+        analysis,
+        Spec.model_validate({"alternatives": 1, "stage": {"x": [-9, 9], "z": [-9, 9]}}),
+    )
+
+
+def _blame(spec: Spec, t: int) -> str:
+    for i, m in enumerate(spec.motifs):
+        if m.bar == t:
+            return f"motifs[{i}]"
+    return "exclude"
+
+
+def _target_signature(graph: MotionGraph, target: str, field_name: str) -> np.ndarray:
+    mot = graph.manifest.get("motifs", {})
+    k = int(mot.get("k", int(np.max(graph.motif)) + 1))
+    if target == "dataset":
+        return np.asarray(
+            mot.get(
+                "signature",
+                choreography.motif_signature(
+                    np.asarray(graph.motif)[np.asarray(graph.node_kind) == 0], k
+                ),
+            )
+        )
+    if target not in graph.clips:
+        raise NotFoundError(
+            f"{field_name}: unknown take {target!r}", code="unknown_node", field=field_name
+        )
+    return choreography.motif_signature(choreography.take_motif_sequence(graph, target), k)
+
+
+def _run(
+    ctx,
+    unary,
+    chain_var,
+    chain_bar,
+    gap_ptr,
+    gap_bar,
+    gap_var,
+    gap_par,
+    var_chain,
+    beam,
+    spec,
+    var,
+    parity,
+    mirror_of,
+) -> np.ndarray:
+    """One forward pass and backtrack; returns the node of every song bar ``(T,)``."""
+    graph = ctx["graph"]
+    n_nodes = graph.n_nodes
+    beam = int(min(beam, n_nodes * ctx["slots"]))
+    wp_bar, wp_idx, wp_pos, wp_tol = ctx["wp"]
+    act_node, act_back, act_cost, act_n, dead = _dp.forward(
+        np.ascontiguousarray(unary, dtype=np.float32),
+        chain_var.astype(np.int64),
+        chain_bar.astype(np.int64),
+        gap_ptr,
+        gap_bar.astype(np.int64),
+        gap_var.astype(np.int64),
+        gap_par,
+        var_chain,
+        ctx["indptr"],
+        ctx["indices"],
+        ctx["costs"],
+        ctx["exit"],
+        ctx["entry"],
+        ctx["style"],
+        ctx["blocks"],
+        ctx["mirror_of"],
+        ctx["disp"],
+        ctx["radius"],
+        ctx["root_path"],
+        ctx["w_pose"],
+        ctx["w_style"],
+        float(spec.weights.transition),
+        ctx["offgraph"],
+        ctx["start"],
+        ctx["stage"],
+        STAGE_WEIGHT,
+        wp_bar,
+        wp_idx,
+        wp_pos,
+        wp_tol,
+        WAYPOINT_WEIGHT,
+        beam,
+        ctx["dense"],
+        int(ctx["slots"]),
+        POSITION_CELL if ctx["track"] else -1.0,
+        ctx["reach"],
+        bool(ctx["track"]),
+        DENSE_LIMIT,
+    )
+    if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
+        raise SpecError(
+            f"no path reaches bar {int(chain_bar[dead])}",
+            code="constraint_conflict",
+            field="include",
+        )
+    chain_nodes, _ = _dp.backtrack(act_node, act_back, act_cost, act_n)
+    nodes = chain_nodes[var_chain[var]]
+    flip = parity == 1
+    nodes[flip] = mirror_of[nodes[flip]]
+    return nodes
+
+
+def root_trajectory(
+    graph: MotionGraph, nodes: np.ndarray, start: np.ndarray | None = None
+) -> np.ndarray:
+    """Placement ``(T, 3)`` (x, z, yaw) of each bar's first frame when bars are chained by their
+    root displacements, starting at ``start`` (default origin, yaw 0)."""
+    pose = np.zeros(3) if start is None else np.asarray(start, dtype=float).copy()
+    out = np.empty((len(nodes), 3))
+    disp = np.asarray(graph.disp, dtype=float)
+    for t, n in enumerate(nodes):
+        out[t] = pose
+        dx, dz, dyaw = disp[n]
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        pose = np.array([pose[0] + dx * c + dz * s, pose[1] - dx * s + dz * c, pose[2] + dyaw])
+    return out
+
+
+def placed_motion(
+    graph: MotionGraph, node: int, placement: np.ndarray, fps: float | None = None
+) -> Motion:
+    """The node's bar turned and moved so its first frame's root sits at ``placement`` (x, z, yaw)."""
+    m = graph.node_motion(node, fps)
+    yaw0 = quat.heading_angle(m.rotations[0, 0])
+    turn = quat.from_y_angle(np.array(placement[2] - yaw0))
+    rel = m.root_positions - m.root_positions[0] * np.array([1.0, 0.0, 1.0])
+    root = quat.rotate(np.broadcast_to(turn, rel.shape[:-1] + (4,)), rel) + np.array(
+        [placement[0], 0.0, placement[1]]
+    )
+    rot = m.rotations.copy()
+    rot[:, 0] = quat.multiply(np.broadcast_to(turn, rot[:, 0].shape), rot[:, 0])
+    return Motion(skeleton=m.skeleton, fps=m.fps, root_positions=root, rotations=rot)
+
+
+def evaluate(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternative:
+    """Cost breakdown and constraint check of a path; raises SpecError when the stage or a
+    waypoint is missed (no path satisfied it)."""
+    from dancegraph.graph.explain import breakdown
+
+    return breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)

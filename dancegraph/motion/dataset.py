@@ -1,0 +1,992 @@
+"""Dataset import: a folder of motion files (+ an optional manifest) → a normalised dataset of bars.
+
+``import_dataset`` reads every BVH file of a folder, estimates or reads each clip's beat and bar
+grid, cuts 4-beat bars, labels each bar's rhythm signature from its kinematic beats, and stores
+the result in the object store:
+
+- ``datasets/<name>/dataset.json``: name, version (content hash), licence, the skeleton, the
+  clips (``ClipInfo``), the bars (``BarInfo``) and the import report;
+- ``<data_prefix>/clips/<clip_id>.npz``: ``root_positions (F, 3)`` m, ``rotations (F, J, 4)``
+  (x, y, z, w) float32, ``beats (N,)`` s, ``kinematic_beats (K,)`` s;
+- ``<data_prefix>/audio/<clip_id><ext>``: paired audio, where the manifest names one;
+
+where ``data_prefix`` (``datasets/<name>/data-<stamp>``, named in dataset.json) is fresh for
+every import, so a reader never mixes two imports' files. The version is a hash of the content
+(records and clip arrays), the same for the same input.
+
+A file that cannot be imported is listed in the report with its error code and message; the
+other clips are still imported. ``load_dataset`` reads a stored dataset back.
+
+Manifest (YAML or JSON; ``manifest.yaml``/``.yml``/``.json`` in the folder is used when none is
+given). Every key is optional; unknown keys are an error (``manifest_invalid``) so that typos
+do not pass silently::
+
+    name: cmu-salsa                  # informative; the import's --name wins
+    licence: "..."                   # stored with the dataset
+    acknowledgement: "..."
+    source: "http://mocap.cs.cmu.edu"
+    files: "*.bvh"                   # glob inside the folder (default *.bvh)
+    strip_suffix: "_scaled"          # clip id = file stem without this suffix
+    fps: 60                          # override the files' header frame rate ...
+    fps_reason: "..."                # ... and say why (kept in the dataset)
+    scale: 1.0                       # file units → metres (CMU ASF units: 0.056444)
+    style: salsa                     # style label of every clip
+    tempo_prior_bpm: [150, 220]      # plausible tempo range for the kinematic estimate
+    tempo_bpm: 120                   # fixed tempo: bars from it instead of an estimate
+    first_downbeat_s: 0.0            # with tempo_bpm: where the first bar starts (default:
+                                     # on the kinematic beats, or 0 without a steady beat)
+    steady_beat: false               # the clips have no steady beat: bars from tempo_bpm,
+                                     # every clip flagged no_steady_beat
+    flags: [no_music]                # flags given to every clip
+    clips:                           # per clip (key: clip id), all optional
+      "60_01":
+        file: 60_01_scaled.bvh       # default: <id><strip_suffix>.bvh or the matching stem
+        style: salsa
+        fps: 60
+        scale: 1.0
+        tempo_prior_bpm: [150, 220]
+        tempo_bpm: 168
+        first_downbeat_s: 0.12
+        beats: [0.12, 0.48, ...]     # annotated beat times (s): override every estimate
+        downbeats: [0.12, 1.55, ...] # bar starts among the beats (default: the first beat)
+        bars: [[0.12, 0.48, 0.83, 1.19, 1.55], ...]  # or explicit 4-beat bars (+ next downbeat)
+        signatures: ["00010101", ...]  # one per bar: override the kinematic labels
+        audio: 60_01.ogg             # paired audio, relative to the folder
+        exclude: true                # not imported (listed in the report)
+        reason: "..."                # why excluded / flagged
+        flags: [walk]                # extra flags for this clip
+
+Beat sources, in order of precedence: ``annotation`` (beats/bars in the manifest),
+``manifest_tempo`` (a fixed tempo, e.g. for takes without a steady beat), ``kinematic`` (the
+estimate of ``dancegraph.motion.tempo``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from dancegraph.errors import DanceGraphError, MotionFileError, NotFoundError
+from dancegraph.motion import tempo as tempo_mod
+from dancegraph.motion.bvh import read_bvh
+from dancegraph.motion.features import MAIN_JOINTS, kinematic_beats
+from dancegraph.motion.fk import canonical_positions, forward_kinematics
+from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.rhythm import signatures as sig
+from dancegraph.store import ObjectStore
+
+FORMAT_VERSION = 1
+MANIFEST_NAMES = ("manifest.yaml", "manifest.yml", "manifest.json")
+_SAFE_ID = re.compile(r"[^A-Za-z0-9._-]+")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+#: Frame rates a suggested fps correction snaps to.
+_COMMON_FPS = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 100.0, 120.0, 240.0)
+#: Share of the estimated clips whose motion tempo leaves the prior that raises an fps warning.
+_FPS_WARNING_SHARE = 0.3
+
+ProgressFn = Callable[[int, int, str], None]
+#: dataset.json keys the version hash covers (with the clip arrays).
+_CONTENT_KEYS = (
+    "format",
+    "licence",
+    "acknowledgement",
+    "fps_override",
+    "scale",
+    "skeleton",
+    "clips",
+    "bars",
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Manifest
+# --------------------------------------------------------------------------------------------
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _check_range(v: list[float] | None) -> list[float] | None:
+    if v is not None and (len(v) != 2 or not 0 < v[0] < v[1]):
+        raise ValueError("a tempo range is [lo, hi] BPM with 0 < lo < hi")
+    return v
+
+
+class ClipManifest(_Strict):
+    """Per-clip manifest entry (see the module docstring)."""
+
+    file: str | None = None
+    style: str | None = None
+    fps: float | None = Field(default=None, gt=0, le=10000)
+    scale: float | None = Field(default=None, gt=0)
+    tempo_prior_bpm: list[float] | None = None
+    tempo_bpm: float | None = Field(default=None, gt=0, le=1000)
+    first_downbeat_s: float | None = Field(default=None, ge=0)
+    beats: list[float] | None = None
+    downbeats: list[float] | None = None
+    bars: list[list[float]] | None = None
+    signatures: list[str] | None = None
+    audio: str | None = None
+    exclude: bool = False
+    reason: str | None = None
+    flags: list[str] = Field(default_factory=list)
+
+    _range = field_validator("tempo_prior_bpm")(_check_range)
+
+    @field_validator("bars")
+    @classmethod
+    def _bars_have_five(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None and any(len(b) != 5 for b in v):
+            raise ValueError("each bar is 5 times: its 4 beats and the next downbeat")
+        return v
+
+    @field_validator("signatures")
+    @classmethod
+    def _signatures_valid(cls, v: list[str] | None) -> list[str] | None:
+        if v is not None:
+            for s in v:
+                sig.to_bits(s)
+        return v
+
+    @field_validator("beats", "downbeats")
+    @classmethod
+    def _increasing(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (np.any(np.diff(v) <= 0) or not np.all(np.isfinite(v))):
+            raise ValueError("times must be finite and strictly increasing")
+        return v
+
+
+class Manifest(_Strict):
+    """Dataset manifest (see the module docstring)."""
+
+    name: str | None = None
+    licence: str | None = None
+    acknowledgement: str | None = None
+    source: str | None = None
+    description: str | None = None
+    files: str = "*.bvh"
+    strip_suffix: str | None = None
+    fps: float | None = Field(default=None, gt=0, le=10000)
+    fps_reason: str | None = None
+    scale: float = Field(default=1.0, gt=0)
+    style: str | None = None
+    tempo_prior_bpm: list[float] | None = None
+    tempo_bpm: float | None = Field(default=None, gt=0, le=1000)
+    first_downbeat_s: float | None = Field(default=None, ge=0)
+    steady_beat: bool = True
+    flags: list[str] = Field(default_factory=list)
+    clips: dict[str, ClipManifest] = Field(default_factory=dict)
+
+    _range = field_validator("tempo_prior_bpm")(_check_range)
+
+
+def load_manifest(path: str | Path) -> dict:
+    """Read a manifest file (YAML or JSON) into a dict; ``manifest_invalid`` if unreadable."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DanceGraphError(
+            f"{path}: cannot read the manifest ({exc})", code="manifest_invalid", field=str(path)
+        ) from None
+    try:
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise DanceGraphError(
+            f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}",
+            code="manifest_invalid",
+            field=str(path),
+        ) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise DanceGraphError(
+            f"{path}: a manifest is a mapping of keys", code="manifest_invalid", field=str(path)
+        )
+    return data
+
+
+def parse_manifest(data: dict | Manifest | None) -> Manifest:
+    """Validate a manifest dict; errors name the offending field (``manifest_invalid``)."""
+    if isinstance(data, Manifest):
+        return data
+    try:
+        return Manifest.model_validate(data or {})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"])
+        raise DanceGraphError(
+            f"manifest field {where!r}: {err['msg']}", code="manifest_invalid", field=where
+        ) from None
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset records
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ClipInfo:
+    """One imported take.
+
+    ``beat_source``: ``annotation`` | ``kinematic`` | ``manifest_tempo``. ``tempo_bpm`` is the
+    tempo the bars were cut at; ``motion_tempo_bpm`` the prior-free kinematic estimate (NaN
+    where not estimated). ``header_fps`` is the file's own rate, ``fps`` the one used.
+    """
+
+    id: str
+    file: str
+    fps: float
+    n_frames: int
+    tempo_bpm: float
+    tempo_confidence: float
+    beat_source: str
+    flags: list[str]
+    style: str
+    header_fps: float = 0.0
+    scale: float = 1.0
+    duration_s: float = 0.0
+    motion_tempo_bpm: float = float("nan")
+    n_bars: int = 0
+    bar_phase: int = 0
+    grid_fit: float = 0.0
+    audio: str | None = None
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k in ("motion_tempo_bpm", "tempo_bpm", "tempo_confidence", "grid_fit"):
+            if isinstance(d[k], float) and not math.isfinite(d[k]):
+                d[k] = None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ClipInfo:
+        d = dict(d)
+        for k in ("motion_tempo_bpm", "tempo_bpm", "tempo_confidence", "grid_fit"):
+            if d.get(k) is None:
+                d[k] = float("nan")
+        return cls(**d)
+
+
+@dataclass
+class BarInfo:
+    """One 4-beat bar of a clip: a graph node's motion.
+
+    ``end_frame`` is exclusive; ``beat_times``: the 4 beats and the next downbeat (s, clip
+    time); ``signature``: the nearest common rhythm signature; ``signature_raw``: the label
+    read from the kinematic beats (or the annotation).
+    """
+
+    clip_id: str
+    index: int
+    start_frame: int
+    end_frame: int
+    start_s: float
+    end_s: float
+    beat_times: np.ndarray
+    signature: str
+    style: str
+    signature_raw: str = ""
+
+    @property
+    def node_id(self) -> str:
+        return f"{self.clip_id}:{self.index}"
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["beat_times"] = [round(float(t), 6) for t in self.beat_times]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> BarInfo:
+        d = dict(d)
+        d["beat_times"] = np.asarray(d["beat_times"], dtype=float)
+        return cls(**d)
+
+
+@dataclass
+class ImportReport:
+    """What an import did: per-clip rows, failures (file, code, message), warnings."""
+
+    name: str
+    version: str
+    clips: list[ClipInfo]
+    failed: list[dict]
+    excluded: list[dict]
+    warnings: list[str]
+    n_bars: int
+    signature_counts: dict[str, int]
+    elapsed_s: float
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "version": self.version,
+            "n_clips": len(self.clips),
+            "n_bars": self.n_bars,
+            "elapsed_s": round(self.elapsed_s, 3),
+            "clips": [
+                {
+                    "id": c.id,
+                    "file": c.file,
+                    "fps": c.fps,
+                    "header_fps": c.header_fps,
+                    "duration_s": round(c.duration_s, 3),
+                    "tempo_bpm": _round(c.tempo_bpm, 1),
+                    "motion_tempo_bpm": _round(c.motion_tempo_bpm, 1),
+                    "tempo_confidence": _round(c.tempo_confidence, 2),
+                    "beat_source": c.beat_source,
+                    "bars": c.n_bars,
+                    "style": c.style,
+                    "flags": c.flags,
+                }
+                for c in self.clips
+            ],
+            "failed": self.failed,
+            "excluded": self.excluded,
+            "warnings": self.warnings,
+            "signature_counts": self.signature_counts,
+        }
+
+    def table(self) -> str:
+        """A plain-text table of the clips, then failures and warnings."""
+        head = f"{'clip':<14}{'fps':>6}{'hdr':>6}{'dur s':>8}{'tempo':>8}{'motion':>8}{'conf':>6}  {'source':<15}{'bars':>5}  {'style':<10}flags"
+        lines = [f"dataset {self.name}  version {self.version[:12]}", head, "-" * len(head)]
+        for c in self.clips:
+            lines.append(
+                f"{c.id:<14}{c.fps:>6.0f}{c.header_fps:>6.0f}{c.duration_s:>8.1f}"
+                f"{_fmt(c.tempo_bpm):>8}{_fmt(c.motion_tempo_bpm):>8}{_fmt(c.tempo_confidence, 2):>6}  "
+                f"{c.beat_source:<15}{c.n_bars:>5}  {c.style:<10}{','.join(c.flags)}"
+            )
+        lines.append(
+            f"{len(self.clips)} clips, {self.n_bars} bars, {len(self.failed)} failed, "
+            f"{len(self.excluded)} excluded, {self.elapsed_s:.1f} s"
+        )
+        for f in self.failed:
+            lines.append(f"FAILED {f['file']}: [{f['code']}] {f['error']}")
+        for e in self.excluded:
+            lines.append(f"excluded {e['file']}: {e.get('reason') or 'manifest'}")
+        for w in self.warnings:
+            lines.append(f"WARNING {w}")
+        return "\n".join(lines)
+
+
+def _round(x: float, n: int) -> float | None:
+    return round(float(x), n) if x is not None and math.isfinite(x) else None
+
+
+def _fmt(x: float, n: int = 1) -> str:
+    return f"{x:.{n}f}" if x is not None and math.isfinite(x) else "-"
+
+
+@dataclass
+class Dataset:
+    """A stored dataset: clips, bars (graph nodes ``"<clip_id>:<bar index>"``) and motions."""
+
+    name: str
+    version: str
+    licence: str | None
+    skeleton: Skeleton
+    clips: list[ClipInfo]
+    bars: list[BarInfo]
+    store: ObjectStore
+    meta: dict = field(default_factory=dict)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self._clips = {c.id: c for c in self.clips}
+        self._bars = {b.node_id: b for b in self.bars}
+
+    def clip(self, clip_id: str) -> ClipInfo:
+        try:
+            return self._clips[clip_id]
+        except KeyError:
+            raise NotFoundError(
+                f"dataset {self.name!r} has no clip {clip_id!r}", code="unknown_clip", field="clip"
+            ) from None
+
+    def bar(self, node_id: str) -> BarInfo:
+        try:
+            return self._bars[node_id]
+        except KeyError:
+            raise NotFoundError(
+                f"dataset {self.name!r} has no node {node_id!r}", code="unknown_node", field="node"
+            ) from None
+
+    def node_ids(self) -> list[str]:
+        return [b.node_id for b in self.bars]
+
+    def _arrays(self, clip_id: str) -> dict[str, np.ndarray]:
+        self.clip(clip_id)
+        if clip_id not in self._cache:
+            key = f"{self.meta['data_prefix']}/clips/{clip_id}.npz"
+            try:
+                with np.load(io.BytesIO(self.store.get_bytes(key))) as z:
+                    self._cache[clip_id] = {k: z[k] for k in z.files}
+            except (OSError, ValueError, KeyError) as exc:
+                raise DanceGraphError(
+                    f"dataset {self.name!r}: clip {clip_id!r} data unreadable ({exc})",
+                    code="dataset_corrupt",
+                    field=key,
+                ) from None
+        return self._cache[clip_id]
+
+    def motion(self, clip_id: str) -> Motion:
+        """The clip's motion (float64), loaded once and cached: shared, copy before changing it."""
+        key = ("motion", clip_id)
+        if key not in self._cache:
+            a = self._arrays(clip_id)
+            self._cache[key] = Motion(
+                self.skeleton,
+                self.clip(clip_id).fps,
+                a["root_positions"].astype(float),
+                a["rotations"].astype(float),
+            )
+        return self._cache[key]
+
+    def bar_motion(self, node_id: str) -> Motion:
+        """The frames ``[start_frame, end_frame)`` of a bar."""
+        b = self.bar(node_id)
+        return self.motion(b.clip_id).slice(b.start_frame, b.end_frame)
+
+    def beats(self, clip_id: str) -> np.ndarray:
+        """``(N,)`` beat times (s) of the clip's grid."""
+        return self._arrays(clip_id)["beats"].astype(float)
+
+    def kinematic_beats(self, clip_id: str) -> np.ndarray:
+        """``(K,)`` kinematic beat times (s) of the clip."""
+        return self._arrays(clip_id)["kinematic_beats"].astype(float)
+
+
+# --------------------------------------------------------------------------------------------
+# Import
+# --------------------------------------------------------------------------------------------
+
+
+def _clip_id(stem: str, strip_suffix: str | None) -> str:
+    if strip_suffix and stem.endswith(strip_suffix) and len(stem) > len(strip_suffix):
+        stem = stem[: -len(strip_suffix)]
+    cid = _SAFE_ID.sub("_", stem).lstrip("._-")
+    return cid or "clip"
+
+
+def _motion_joints(skeleton: Skeleton, path: str) -> tuple[int, tuple[int, int], tuple[int, int]]:
+    """Root, (left, right) ankle and (left, right) wrist joint indices for the tempo signals."""
+    need = ("hips", "left_ankle", "right_ankle", "left_wrist", "right_wrist")
+    missing = [k for k in need if k not in skeleton.canonical]
+    if missing:
+        raise MotionFileError(
+            f"cannot find the joints {', '.join(missing)} by name (hips, feet and hands are "
+            "needed for the kinematic tempo)",
+            path=path,
+            code="skeleton_unmapped",
+        )
+    ix = {k: skeleton.index(skeleton.canonical[k]) for k in need}
+    return (
+        ix["hips"],
+        (ix["left_ankle"], ix["right_ankle"]),
+        (ix["left_wrist"], ix["right_wrist"]),
+    )
+
+
+def _annotation_bars(cm: ClipManifest, fps: float) -> np.ndarray | None:
+    """``(B, 5)`` bars from a clip's beat/bar annotations, or None when it has none."""
+    if cm.bars is not None:
+        return np.asarray(cm.bars, dtype=float).reshape(-1, 5)
+    if cm.beats is None:
+        return None
+    beats = np.asarray(cm.beats, dtype=float)
+    if cm.downbeats is None:
+        return tempo_mod.bars_from_beats(beats, 0)
+    tol = 1.5 / fps
+    rows = []
+    for d in cm.downbeats:
+        i = int(np.argmin(np.abs(beats - d)))
+        if abs(beats[i] - d) > tol:
+            raise ValueError(f"downbeat {d} s is not one of the annotated beats")
+        if i + 4 < len(beats):
+            rows.append(beats[i : i + 5])
+    return np.stack(rows) if rows else np.zeros((0, 5))
+
+
+def _fps_warning(rows: list[ClipInfo], prior: tuple[float, float] | None) -> str | None:
+    """A warning when many clips move much faster (or slower) than the tempo prior allows."""
+    est = [c for c in rows if c.beat_source == "kinematic" and math.isfinite(c.motion_tempo_bpm)]
+    flagged = [c for c in est if "tempo_outside_prior" in c.flags]
+    if not est or len(flagged) < max(2, _FPS_WARNING_SHARE * len(est)):
+        return None
+    lo, hi = prior or tempo_mod.DEFAULT_PRIOR_BPM
+    motion = float(np.median([c.motion_tempo_bpm for c in flagged]))
+    ratio = motion / math.sqrt(lo * hi)
+    fps = float(np.median([c.fps for c in flagged]))
+    suggest = min(_COMMON_FPS, key=lambda f: abs(math.log(f / (fps / ratio))))
+    return (
+        f"{len(flagged)} of {len(est)} clips move about {ratio:.1f}x faster than the tempo prior "
+        f"{lo:.0f}-{hi:.0f} BPM (median motion tempo {motion:.0f} BPM at {fps:.0f} fps): is the "
+        f"frame rate right? At {suggest:.0f} fps these clips would move at about "
+        f"{motion * suggest / fps:.0f} BPM. Set 'fps' in the manifest if the files' header is wrong."
+    )
+
+
+def _find_files(src: Path, pattern: str) -> list[Path]:
+    """Files matching ``pattern`` inside ``src`` (a pattern cannot reach outside it)."""
+    root = _norm(src)
+    try:
+        found = list(src.glob(pattern))
+    except (ValueError, NotImplementedError) as exc:
+        raise DanceGraphError(
+            f"manifest 'files': bad pattern {pattern!r} ({exc})",
+            code="manifest_invalid",
+            field="files",
+        ) from None
+    return sorted(
+        p
+        for p in found
+        if p.is_file() and not p.name.startswith(".") and _norm(p).is_relative_to(root)
+    )
+
+
+def _norm(path: Path) -> Path:
+    """Absolute, with ``..`` resolved lexically (symlinked files inside a folder stay inside)."""
+    return Path(os.path.normpath(path.absolute()))
+
+
+def _local(message: str, src: Path) -> str:
+    """An error message with the import folder's path left out (reports name files only)."""
+    return message.replace(str(src) + "/", "").replace(str(src.resolve()) + "/", "")
+
+
+def _clip_manifest(m: Manifest, cid: str, path: Path) -> ClipManifest:
+    """The manifest entry of a clip: by id, by file name or by file stem."""
+    for key in (cid, path.name, path.stem):
+        if key in m.clips:
+            return m.clips[key]
+    return ClipManifest()
+
+
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def import_dataset(
+    src_dir: str | Path,
+    name: str,
+    store: ObjectStore,
+    manifest: dict | Manifest | None = None,
+    progress: ProgressFn | None = None,
+) -> ImportReport:
+    """Import the motion files of ``src_dir`` as dataset ``name`` into ``store``.
+
+    ``manifest``: a dict (see the module docstring) or None to use ``manifest.yaml`` (or .yml,
+    .json) in ``src_dir`` when present. ``progress(done, total, file)`` is called after each file.
+    Raises ``NotFoundError`` (``dataset_source_not_found``) for a missing folder,
+    ``DanceGraphError`` ``manifest_invalid`` / ``dataset_empty`` / ``dataset_name_invalid``;
+    files that fail are listed in the report, not raised.
+    """
+    t0 = time.perf_counter()
+    if not _NAME.match(name):
+        raise DanceGraphError(
+            f"dataset name {name!r}: use letters, digits, '.', '_' or '-'",
+            code="dataset_name_invalid",
+            field="name",
+        )
+    src = Path(src_dir)
+    if not src.is_dir():
+        raise NotFoundError(
+            f"{src}: no such folder", code="dataset_source_not_found", field=str(src)
+        )
+    if manifest is None:
+        for mname in MANIFEST_NAMES:
+            if (src / mname).is_file():
+                manifest = load_manifest(src / mname)
+                break
+    m = parse_manifest(manifest)
+    files = _find_files(src, m.files)
+    if not files:
+        raise DanceGraphError(
+            f"{src}: no motion files matching {m.files!r}", code="dataset_empty", field=str(src)
+        )
+
+    prefix = f"datasets/{name}"
+    # Clip data goes to a fresh folder that dataset.json names; the previous import stays
+    # readable until the new dataset.json replaces it, then its folder is removed.
+    data_prefix = f"{prefix}/data-{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:8]}"
+    skeleton: Skeleton | None = None
+    rows: list[ClipInfo] = []
+    bars: list[BarInfo] = []
+    failed: list[dict] = []
+    excluded: list[dict] = []
+    warnings: list[str] = []
+    digests: list[str] = []
+    seen: set[str] = set()
+
+    for done, path in enumerate(files, start=1):
+        cid = _clip_id(path.stem, m.strip_suffix)
+        cm = _clip_manifest(m, cid, path)
+        try:
+            if cm.exclude:
+                excluded.append({"file": path.name, "id": cid, "reason": cm.reason})
+                continue
+            if cid in seen:
+                raise DanceGraphError(
+                    f"clip id {cid!r} is already used by another file", code="duplicate_clip_id"
+                )
+            row, clip_bars, arrays, skel = _import_clip(
+                path, cid, cm, m, skeleton, MAIN_JOINTS, kinematic_beats
+            )
+            if cm.audio:
+                apath = _norm(src / cm.audio)
+                if not apath.is_relative_to(_norm(src)):
+                    raise DanceGraphError(
+                        f"paired audio {cm.audio!r} lies outside the import folder",
+                        code="manifest_invalid",
+                        field=f"clips.{cid}.audio",
+                    )
+                if apath.is_file():
+                    key = f"{data_prefix}/audio/{cid}{apath.suffix.lower()}"
+                    store.put_file(key, apath)
+                    row.audio = key
+                else:
+                    row.flags.append("audio_missing")
+                    warnings.append(f"{path.name}: paired audio {cm.audio!r} not found")
+            data = _npz_bytes(**arrays)
+            store.put_bytes(f"{data_prefix}/clips/{cid}.npz", data)
+            digests.append(cid + hashlib.sha256(data).hexdigest())
+            skeleton = skel
+            seen.add(cid)
+            rows.append(row)
+            bars.extend(clip_bars)
+        except DanceGraphError as exc:
+            failed.append({"file": path.name, "code": exc.code, "error": _local(exc.message, src)})
+        except (ValueError, OSError, MemoryError) as exc:
+            failed.append(
+                {"file": path.name, "code": "motion_file_invalid", "error": _local(str(exc), src)}
+            )
+        finally:
+            if progress is not None:
+                progress(done, len(files), path.name)
+
+    if not rows:
+        store.delete_prefix(data_prefix)
+        detail = "; ".join(f"{f['file']}: [{f['code']}] {f['error']}" for f in failed[:5])
+        raise DanceGraphError(
+            f"{src}: no clip could be imported ({len(failed)} failed, {len(excluded)} excluded)"
+            + (f": {detail}" if detail else ""),
+            code="dataset_empty",
+            field=str(src),
+        )
+
+    prior = tuple(m.tempo_prior_bpm) if m.tempo_prior_bpm else None
+    fps_warning = _fps_warning(rows, prior)
+    if fps_warning:
+        warnings.append(fps_warning)
+    counts = Counter(b.signature for b in bars)
+    signature_counts = {s: counts.get(s, 0) for s in sig.COMMON_SIGNATURES}
+    doc: dict[str, Any] = {
+        "format": FORMAT_VERSION,
+        "name": name,
+        "licence": m.licence,
+        "acknowledgement": m.acknowledgement,
+        "source": m.source,
+        "description": m.description,
+        "fps_override": m.fps,
+        "fps_reason": m.fps_reason,
+        "scale": m.scale,
+        "tempo_prior_bpm": m.tempo_prior_bpm,
+        "skeleton": skeleton.to_dict(),
+        "clips": [c.to_dict() for c in rows],
+        "bars": [b.to_dict() for b in bars],
+        "failed": failed,
+        "excluded": excluded,
+        "warnings": warnings,
+        "signature_counts": signature_counts,
+    }
+    # The version hashes what a graph is built from, not how the import went.
+    content = {k: doc[k] for k in _CONTENT_KEYS}
+    body = json.dumps(content, sort_keys=True, allow_nan=False).encode()
+    version = hashlib.sha256(body + "".join(sorted(digests)).encode()).hexdigest()
+    doc["version"] = version
+    doc["data_prefix"] = data_prefix
+    store.put_bytes(f"{prefix}/dataset.json", json.dumps(doc, indent=1, allow_nan=False).encode())
+    # Remove the data of earlier imports only (names sort by time): a concurrent, later import
+    # of the same name keeps its folder.
+    ours = data_prefix.split("/")[2]
+    for old in {k.split("/")[2] for k in store.list(prefix)}:
+        if old.startswith("data-") and old < ours:
+            store.delete_prefix(f"{prefix}/{old}")
+    return ImportReport(
+        name=name,
+        version=version,
+        clips=rows,
+        failed=failed,
+        excluded=excluded,
+        warnings=warnings,
+        n_bars=len(bars),
+        signature_counts=signature_counts,
+        elapsed_s=time.perf_counter() - t0,
+    )
+
+
+def _import_clip(
+    path: Path,
+    cid: str,
+    cm: ClipManifest,
+    m: Manifest,
+    skeleton: Skeleton | None,
+    main_joints: tuple[str, ...],
+    kinematic_beats_fn: Callable[[np.ndarray, float], np.ndarray],
+) -> tuple[ClipInfo, list[BarInfo], dict[str, np.ndarray], Skeleton]:
+    """Read, grid, cut and label one clip; raise DanceGraphError on a bad file."""
+    pname = str(path)
+    scale = cm.scale or m.scale
+    motion = read_bvh(path, scale=scale)
+    header_fps = motion.fps
+    fps = float(cm.fps or m.fps or header_fps)
+    motion = Motion(motion.skeleton, fps, motion.root_positions, motion.rotations)
+    if skeleton is not None and motion.skeleton != skeleton:
+        raise MotionFileError(
+            f"skeleton differs from the dataset's ({motion.skeleton.n_joints} joints vs "
+            f"{skeleton.n_joints}): one dataset holds one skeleton",
+            path=pname,
+            code="skeleton_mismatch",
+        )
+    n = motion.n_frames
+    duration = n / fps
+    positions, world = forward_kinematics(motion)
+    root, feet, hands = _motion_joints(motion.skeleton, pname)
+    main = canonical_positions(motion.skeleton, positions, world, main_joints)
+    kb = np.asarray(kinematic_beats_fn(main, fps), dtype=float)
+
+    flags = list(dict.fromkeys([*m.flags, *cm.flags]))
+    style = cm.style or m.style or "unknown"
+    prior = cm.tempo_prior_bpm or m.tempo_prior_bpm
+    tempo_bpm = cm.tempo_bpm or m.tempo_bpm
+    motion_tempo = float("nan")
+    confidence = float("nan")
+    phase = 0
+    try:
+        ann = _annotation_bars(cm, fps)
+    except ValueError as exc:
+        raise DanceGraphError(
+            f"{path.name}: {exc}", code="manifest_invalid", field=f"clips.{cid}"
+        ) from None
+
+    # Always run the kinematic estimate when the clip is long enough: its motion tempo is what
+    # lets a user see a wrong frame rate, whatever the bars are cut from.
+    est = None
+    if duration >= 2.0:
+        signals = tempo_mod.periodicity_signals(positions, fps, root=root, feet=feet, hands=hands)
+        est = tempo_mod.estimate_tempo(signals, fps, tuple(prior) if prior else None, kb)
+        motion_tempo = est.motion_tempo_bpm
+
+    if ann is not None:
+        source = "annotation"
+        bar_beats = ann
+        beats = np.unique(bar_beats.ravel())
+        if len(bar_beats):
+            tempo_bpm = float(240.0 / np.median(bar_beats[:, 4] - bar_beats[:, 0]))
+        confidence = 1.0
+    elif tempo_bpm is not None or not m.steady_beat:
+        source = "manifest_tempo"
+        if tempo_bpm is None:
+            raise DanceGraphError(
+                f"{path.name}: 'steady_beat: false' needs a 'tempo_bpm' to cut bars",
+                code="manifest_invalid",
+                field="tempo_bpm",
+            )
+        first = cm.first_downbeat_s if cm.first_downbeat_s is not None else m.first_downbeat_s
+        if m.steady_beat and first is None and len(kb) >= 4:
+            # Known tempo, unknown grid: place the beats and the downbeat on the kinematics.
+            period = 60.0 / tempo_bpm
+            beats = tempo_mod.track_beats(tempo_mod.beat_envelope(kb, n, fps), fps, period)
+            phase, _clarity = tempo_mod.bar_phase(beats, kb, period)
+        else:
+            beats = tempo_mod.grid_from_tempo(duration, tempo_bpm, first or 0.0)
+        bar_beats = tempo_mod.bars_from_beats(beats, phase)
+        confidence = 1.0 if m.steady_beat else 0.0
+        if not m.steady_beat:
+            flags.append("no_steady_beat")
+    else:
+        source = "kinematic"
+        if est is None:
+            raise DanceGraphError(
+                f"{path.name}: {duration:.2f} s is too short to estimate a tempo (2 s at least); "
+                "give 'tempo_bpm' or beats in the manifest",
+                code="clip_too_short",
+                field=pname,
+            )
+        tempo_bpm = est.tempo_bpm
+        confidence = est.confidence
+        flags.extend(est.flags)
+        env = tempo_mod.beat_envelope(kb, n, fps)
+        beats = tempo_mod.track_beats(env, fps, est.beat_period_s)
+        phase, _clarity = tempo_mod.bar_phase(beats, kb, est.beat_period_s)
+        bar_beats = tempo_mod.bars_from_beats(beats, phase)
+    # A fixed manifest tempo on a steady dance is only as right as the frame rate: pass the
+    # estimate's warning on. Annotations are authoritative and no-steady-beat takes have no
+    # motion tempo worth trusting.
+    if (
+        est is not None
+        and source == "manifest_tempo"
+        and m.steady_beat
+        and "tempo_outside_prior" in est.flags
+    ):
+        flags.append("tempo_outside_prior")
+
+    # Keep the bars that lie inside the clip (an annotation may run past its end).
+    last_t = (n - 1) / fps
+    if len(bar_beats):
+        bar_beats = bar_beats[
+            (bar_beats[:, 0] >= -0.5 / fps) & (bar_beats[:, 4] <= last_t + 0.5 / fps)
+        ]
+    if cm.signatures is not None and len(cm.signatures) != len(bar_beats):
+        raise DanceGraphError(
+            f"{path.name}: {len(cm.signatures)} signatures for {len(bar_beats)} bars",
+            code="manifest_invalid",
+            field=f"clips.{cid}.signatures",
+        )
+    if len(bar_beats) == 0:
+        flags.append("no_bars")
+    bits = tempo_mod.bar_signature_bits(kb, bar_beats)
+    nearest = sig.nearest_common(bits) if len(bits) else np.zeros(0, dtype=int)
+    fit = tempo_mod.grid_fit(kb, bar_beats) if len(bar_beats) else 0.0
+
+    clip_bars: list[BarInfo] = []
+    for i, bb in enumerate(bar_beats):
+        if cm.signatures is not None:
+            raw = snapped = cm.signatures[i]
+        else:
+            raw = sig.to_string(bits[i])
+            snapped = sig.COMMON_SIGNATURES[int(nearest[i])]
+        start_f = int(np.clip(round(bb[0] * fps), 0, n - 1))
+        end_f = int(np.clip(round(bb[4] * fps), start_f + 1, n))
+        clip_bars.append(
+            BarInfo(
+                clip_id=cid,
+                index=i,
+                start_frame=start_f,
+                end_frame=end_f,
+                start_s=float(bb[0]),
+                end_s=float(bb[4]),
+                beat_times=np.asarray(bb, dtype=float),
+                signature=snapped,
+                style=style,
+                signature_raw=raw,
+            )
+        )
+    row = ClipInfo(
+        id=cid,
+        file=path.name,
+        fps=fps,
+        n_frames=n,
+        tempo_bpm=float(tempo_bpm) if tempo_bpm is not None else float("nan"),
+        tempo_confidence=float(confidence),
+        beat_source=source,
+        flags=list(dict.fromkeys(flags)),
+        style=style,
+        header_fps=float(header_fps),
+        scale=float(scale),
+        duration_s=float(duration),
+        motion_tempo_bpm=float(motion_tempo),
+        n_bars=len(clip_bars),
+        bar_phase=int(phase),
+        grid_fit=float(fit),
+    )
+    arrays = {
+        "root_positions": motion.root_positions.astype(np.float32),
+        "rotations": motion.rotations.astype(np.float32),
+        "beats": np.asarray(beats, dtype=float),
+        "kinematic_beats": kb,
+    }
+    return row, clip_bars, arrays, motion.skeleton
+
+
+# --------------------------------------------------------------------------------------------
+# Loading and listing
+# --------------------------------------------------------------------------------------------
+
+
+def load_dataset(store: ObjectStore, name: str) -> Dataset:
+    """The dataset ``name`` from ``store``; ``NotFoundError`` (``unknown_dataset``) if absent."""
+    if not _NAME.match(name):
+        raise NotFoundError(f"no dataset {name!r}", code="unknown_dataset", field="dataset")
+    key = f"datasets/{name}/dataset.json"
+    if not store.exists(key):
+        raise NotFoundError(f"no dataset {name!r}", code="unknown_dataset", field="dataset")
+    try:
+        doc = json.loads(store.get_bytes(key))
+        if doc.get("format") != FORMAT_VERSION:
+            raise ValueError(f"format {doc.get('format')!r}, expected {FORMAT_VERSION}")
+        return Dataset(
+            name=doc["name"],
+            version=doc["version"],
+            licence=doc.get("licence"),
+            skeleton=Skeleton.from_dict(doc["skeleton"]),
+            clips=[ClipInfo.from_dict(c) for c in doc["clips"]],
+            bars=[BarInfo.from_dict(b) for b in doc["bars"]],
+            store=store,
+            meta={
+                k: doc.get(k)
+                for k in (
+                    "data_prefix",
+                    "acknowledgement",
+                    "source",
+                    "description",
+                    "fps_override",
+                    "fps_reason",
+                    "scale",
+                    "tempo_prior_bpm",
+                    "failed",
+                    "excluded",
+                    "warnings",
+                    "signature_counts",
+                )
+            },
+        )
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DanceGraphError(
+            f"dataset {name!r}: {key} is unreadable ({exc})", code="dataset_corrupt", field=key
+        ) from None
+
+
+def list_datasets(store: ObjectStore) -> list[dict]:
+    """Summaries of the stored datasets: name, version, clips, bars, joints, licence."""
+    out = []
+    base = store.root / "datasets"
+    if not base.is_dir():
+        return out
+    for d in sorted(p for p in base.iterdir() if p.is_dir()):
+        try:
+            ds = load_dataset(store, d.name)
+        except DanceGraphError:
+            continue
+        out.append(
+            {
+                "name": ds.name,
+                "version": ds.version,
+                "clips": len(ds.clips),
+                "bars": len(ds.bars),
+                "joints": ds.skeleton.n_joints,
+                "styles": sorted({c.style for c in ds.clips}),
+                "licence": ds.licence,
+            }
+        )
+    return out

@@ -1,0 +1,134 @@
+"""Tempo from beat times, metrical-level relations (double/half, 3:2) and a confidence.
+
+The tempo reported with a beat track is the one its beats imply (so bars and tempo never
+disagree); the onset envelope's periodicity at the related metrical levels (x2, x1/2, x3/2, x2/3)
+is checked to say how sure that level is. A tracker can lock onto twice or half the felt tempo,
+or onto a dotted (3:2) pulse; the alternatives are reported with their evidence, and the
+confidence drops when another level is about as well supported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "RELATIONS",
+    "TempoEstimate",
+    "estimate_tempo",
+    "metrical_relation",
+    "pulse_salience",
+    "tempo_from_beats",
+]
+
+# metrical levels checked against the tracked tempo: name -> tempo ratio
+RELATIONS: dict[str, float] = {"x2": 2.0, "x1/2": 0.5, "x3/2": 1.5, "x2/3": 2.0 / 3.0}
+
+
+@dataclass
+class TempoEstimate:
+    """Tempo in BPM (from the beat intervals), confidence in [0, 1], and the evidence.
+
+    ``alternatives``: list of {relation, bpm, salience} for the related metrical levels;
+    ``salience`` of the tracked level is ``salience`` (onset autocorrelation, 0..1).
+    """
+
+    bpm: float
+    confidence: float
+    regularity: float
+    salience: float
+    alternatives: list[dict] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
+    """(tempo BPM, regularity 0..1) from beat times (K,) s.
+
+    The tempo is 60 / median inter-beat interval; regularity is the share of intervals within
+    10 % of the local median (robust to a few missed or extra beats and to slow drifts).
+    """
+    beats = np.asarray(beats, dtype=np.float64)
+    if len(beats) < 3:
+        return 0.0, 0.0
+    ibi = np.diff(beats)
+    med = float(np.median(ibi))
+    if med <= 0:
+        return 0.0, 0.0
+    # local median over 9 intervals follows tempo drift and rubato
+    k = 4
+    padded = np.pad(ibi, k, mode="edge")
+    local = np.array([np.median(padded[i : i + 2 * k + 1]) for i in range(len(ibi))])
+    regular = np.abs(ibi - local) <= 0.1 * local
+    return 60.0 / med, float(regular.mean())
+
+
+def metrical_relation(a_bpm: float, b_bpm: float, tol: float = 0.06) -> str | None:
+    """The relation of tempo ``b`` to ``a``: 'x1', 'x2', 'x1/2', 'x3/2', 'x2/3', or None."""
+    if a_bpm <= 0 or b_bpm <= 0:
+        return None
+    r = b_bpm / a_bpm
+    for name, ratio in {"x1": 1.0, **RELATIONS}.items():
+        if abs(r / ratio - 1.0) <= tol:
+            return name
+    return None
+
+
+def pulse_salience(onset_env: np.ndarray, fps: float, bpm: float) -> float:
+    """Normalised autocorrelation (0..1) of an onset envelope (T,) at the period of ``bpm``.
+
+    The maximum over a +-4 % lag window, so small tempo drift does not hide the pulse.
+    """
+    x = np.asarray(onset_env, dtype=np.float64)
+    if bpm <= 0 or len(x) < 4:
+        return 0.0
+    x = x - x.mean()
+    denom = float(np.dot(x, x))
+    if denom <= 0:
+        return 0.0
+    lag = 60.0 * fps / bpm
+    lo, hi = int(np.floor(lag * 0.96)), int(np.ceil(lag * 1.04))
+    best = 0.0
+    for L in range(max(lo, 1), min(hi, len(x) - 1) + 1):
+        best = max(best, float(np.dot(x[:-L], x[L:])) / denom)
+    return max(best, 0.0)
+
+
+def estimate_tempo(
+    beats: np.ndarray, onset_env: np.ndarray | None = None, fps: float = 50.0
+) -> TempoEstimate:
+    """Tempo and confidence of a beat track (K,) s, checked against an onset envelope (T,) at ``fps``.
+
+    Confidence = regularity of the beat intervals, scaled down when a related metrical level
+    (x2, x1/2, x3/2, x2/3) has a clearly stronger pulse in the onset envelope than the tracked one.
+    """
+    bpm, regularity = tempo_from_beats(beats)
+    if bpm <= 0:
+        return TempoEstimate(0.0, 0.0, 0.0, 0.0)
+    est = TempoEstimate(bpm=bpm, confidence=regularity, regularity=regularity, salience=0.0)
+    if onset_env is None:
+        return est
+    est.salience = pulse_salience(onset_env, fps, bpm)
+    for name, ratio in RELATIONS.items():
+        alt = bpm * ratio
+        if not 30.0 <= alt <= 300.0:
+            continue
+        sal = pulse_salience(onset_env, fps, alt)
+        est.alternatives.append({"relation": name, "bpm": alt, "salience": sal})
+    # a faster level whose pulse is as strong is normal (subdivisions); a *competing* level is
+    # one that is not a multiple of the tracked beat: x3/2 and x2/3, or a slower x1/2 that is
+    # much stronger than the tracked beat.
+    competing = [
+        a
+        for a in est.alternatives
+        if (a["relation"] in ("x3/2", "x2/3") and a["salience"] > 1.1 * est.salience)
+        or (a["relation"] == "x1/2" and a["salience"] > 1.5 * est.salience)
+    ]
+    if competing:
+        strongest = max(competing, key=lambda a: a["salience"])
+        est.confidence *= 0.5
+        est.warnings.append(
+            f"tempo_ambiguous: the onset pulse at {strongest['bpm']:.1f} BPM "
+            f"({strongest['relation']} of {bpm:.1f}) is stronger than the tracked beat's"
+        )
+    return est

@@ -1,0 +1,485 @@
+"""Path → motion → files: the dance of each search alternative as BVH (and FBX) plus ``timeline.json``.
+
+For every alternative of a search result, bar ``b``'s node clip (a graph node's bar of motion) is
+time-warped onto the music bar's frames (``retime``), the clips are stitched with root alignment
+and seam blending (``stitch``), placed on the stage where the search planned the path, and the feet
+are cleaned (``clean_foot_skate``). Frame 0 of every file is t = 0 of the song: before the first
+bar the first pose is held, after the last bar the last pose, so an artist can drop the audio and
+the animation on one timeline. Bar ``b`` occupies frames ``[round(start_b·fps), round(start_{b+1}·fps))``.
+
+Files in ``out_dir``:
+
+- ``alternatives/<k>.bvh`` — the dataset's skeleton, metres, ``spec.output.fps``;
+- ``alternatives/<k>.fbx`` — when ``"fbx"`` is in ``spec.output.formats`` (through Blender:
+  ``dancegraph.motion.fbx``);
+- ``timeline.json`` — the song's bars and phrases, per alternative the chosen node per bar with
+  its cost breakdown and provenance (source take, frame range, augmentation), foot-skate and stage
+  reports, and the provenance of the whole result: dataset name, version and licence, graph build
+  version and parameters, model versions, and the spec used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dancegraph import __version__
+from dancegraph.errors import DanceGraphError
+from dancegraph.graph.artifact import KINDS, MotionGraph
+from dancegraph.motion import quat
+from dancegraph.motion.bvh import write_bvh
+from dancegraph.motion.skeleton import Motion
+from dancegraph.spec import Spec
+
+TIMELINE_FORMAT = 1
+TIMELINE = "timeline.json"
+
+
+def bar_frames(bars: np.ndarray, fps: float) -> np.ndarray:
+    """``(B, 2)`` int frame ranges ``[start, end)`` of the music bars at ``fps``.
+
+    ``bars`` is ``(B, 2)`` seconds. Consecutive bars share their boundary frame (a gap between two
+    bars, which the bar rule allows at a downbeat correction, is given to the earlier bar), so
+    the ranges tile the dance without holes; each range holds at least one frame.
+    """
+    bars = np.asarray(bars, dtype=float).reshape(-1, 2)
+    starts = np.round(bars[:, 0] * fps).astype(np.int64)
+    ends = np.round(bars[:, 1] * fps).astype(np.int64)
+    if len(bars) > 1:
+        ends[:-1] = starts[1:]
+    ends = np.maximum(ends, starts + 1)
+    if len(bars) > 1:
+        starts[1:] = np.maximum(starts[1:], ends[:-1])
+        ends = np.maximum(ends, starts + 1)
+    return np.stack([starts, ends], axis=1)
+
+
+def root_heading(motion: Motion, frame: int = 0) -> float:
+    """Heading (radians about +Y, 0 = facing +Z) of the root at ``frame``."""
+    return float(quat.heading_angle(motion.rotations[frame, 0]))
+
+
+def place(motion: Motion, position_xz: tuple[float, float], heading: float) -> Motion:
+    """Move and turn ``motion`` about the vertical so frame 0's root is at ``position_xz`` facing ``heading``."""
+    turn = heading - root_heading(motion, 0)
+    q = quat.from_y_angle(np.float64(turn))
+    root = motion.root_positions.copy()
+    origin = root[0].copy()
+    rel = root - origin
+    rel = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel)
+    root = rel + np.array([position_xz[0], origin[1], position_xz[1]])
+    root[:, 1] = motion.root_positions[:, 1]
+    rot = motion.rotations.copy()
+    rot[:, 0] = quat.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    return Motion(motion.skeleton, motion.fps, root, rot)
+
+
+def follow_plan(motion: Motion, bar_starts: np.ndarray, plan: np.ndarray) -> tuple[Motion, dict]:
+    """Bend ``motion``'s root path so bar ``b`` starts at ``plan[b]`` (x, z, yaw).
+
+    ``bar_starts``: ``(B,)`` frame of each bar's first frame. The error at each bar start
+    (position and heading) is interpolated linearly between bar starts and removed; after the
+    last bar start it stays constant. Returns the motion and ``{max_m, max_rad}`` of the drift.
+    """
+    starts = np.asarray(bar_starts, dtype=np.int64)
+    root = motion.root_positions.copy()
+    rot = motion.rotations.copy()
+    got_xz = root[starts][:, [0, 2]]
+    got_yaw = quat.heading_angle(rot[starts, 0])
+    err_xz = plan[:, :2] - got_xz
+    err_yaw = np.angle(np.exp(1j * (plan[:, 2] - got_yaw)))
+    t = np.arange(motion.n_frames)
+    fix_x = np.interp(t, starts, err_xz[:, 0])
+    fix_z = np.interp(t, starts, err_xz[:, 1])
+    fix_yaw = np.interp(t, starts, err_yaw)
+    root[:, 0] += fix_x
+    root[:, 2] += fix_z
+    rot[:, 0] = quat.multiply(quat.from_y_angle(fix_yaw), rot[:, 0])
+    drift = {
+        "max_m": float(np.linalg.norm(err_xz, axis=1).max()),
+        "max_rad": float(np.abs(err_yaw).max()),
+    }
+    return Motion(motion.skeleton, motion.fps, root, rot), drift
+
+
+def hold(motion: Motion, before: int, after: int) -> Motion:
+    """``motion`` with its first pose repeated ``before`` times and its last ``after`` times."""
+    idx = np.concatenate(
+        [
+            np.zeros(before, dtype=np.int64),
+            np.arange(motion.n_frames),
+            np.full(after, motion.n_frames - 1),
+        ]
+    )
+    return Motion(motion.skeleton, motion.fps, motion.root_positions[idx], motion.rotations[idx])
+
+
+def render_path(
+    graph: MotionGraph,
+    nodes: list[str],
+    bars: np.ndarray,
+    fps: float,
+    *,
+    duration_s: float | None = None,
+    placements: np.ndarray | None = None,
+    foot_cleanup: bool = True,
+) -> tuple[Motion, dict]:
+    """The dance of one path: ``nodes[b]`` (node ids) danced on music bar ``bars[b]`` (seconds).
+
+    Returns the motion (frame 0 = t 0 of the song, ``duration_s`` long when given) and a report:
+    ``frames`` per bar, ``seams`` (frame indices), ``foot_skate`` (before/after), ``stage``
+    (root ground-plane extent), ``drift`` (how far stitching strayed from the plan, corrected).
+
+    ``placements``: ``(B, 3)`` (x, z, yaw) of each bar's first frame as the search planned it
+    (``Alternative.placements``; default: the origin facing +Z, chained by the stitch). The
+    stitched dance is moved there and the small drift between stitching and the plan is spread
+    linearly over each bar, so stage bounds and waypoints the search honoured hold on the file.
+    """
+    from dancegraph.motion.contacts import clean_foot_skate
+    from dancegraph.motion.retime import retime
+    from dancegraph.motion.stitch import stitch
+
+    bars = np.asarray(bars, dtype=float).reshape(-1, 2)
+    if len(nodes) != len(bars):
+        raise DanceGraphError(
+            f"the path has {len(nodes)} nodes for {len(bars)} music bars",
+            code="render_mismatch",
+            field="nodes",
+        )
+    if len(bars) == 0:
+        raise DanceGraphError("the song has no bars to dance", code="render_empty", field="bars")
+    frames = bar_frames(bars, fps)
+    clips = []
+    for b, node_id in enumerate(nodes):
+        try:
+            i = graph.node_index(node_id)
+        except KeyError:
+            raise DanceGraphError(
+                f"node {node_id!r} (bar {b}) is not in graph {graph.name} {graph.version}",
+                code="unknown_node",
+                field=f"nodes[{b}]",
+            ) from None
+        n = int(frames[b, 1] - frames[b, 0])
+        clips.append(retime(graph.node_motion(i), n, fps))
+    dance, seams = stitch(clips)
+    expected = int(frames[-1, 1] - frames[0, 0])
+    if dance.n_frames != expected:
+        raise DanceGraphError(
+            f"stitching returned {dance.n_frames} frames for {expected} bar frames",
+            code="render_failed",
+        )
+    report: dict = {"seams": [int(s) + int(frames[0, 0]) for s in np.asarray(seams).tolist()]}
+    if placements is None:
+        dance = place(dance, (0.0, 0.0), 0.0)
+        report["drift"] = None
+    else:
+        plan = np.asarray(placements, dtype=float).reshape(-1, 3)
+        if len(plan) != len(bars):
+            raise DanceGraphError(
+                f"{len(plan)} placements for {len(bars)} bars",
+                code="render_mismatch",
+                field="placements",
+            )
+        dance = place(dance, (plan[0, 0], plan[0, 1]), plan[0, 2])
+        dance, report["drift"] = follow_plan(dance, frames[:, 0] - frames[0, 0], plan)
+    if foot_cleanup:
+        dance, skate = clean_foot_skate(dance)
+        report["foot_skate"] = _plain(skate)
+    total = expected + int(frames[0, 0])
+    if duration_s is not None:
+        total = max(total, int(round(duration_s * fps)))
+    dance = hold(dance, int(frames[0, 0]), total - int(frames[-1, 1]))
+    report["frames"] = frames.tolist()
+    xz = dance.root_positions[:, [0, 2]]
+    report["stage"] = {
+        "x": [float(xz[:, 0].min()), float(xz[:, 0].max())],
+        "z": [float(xz[:, 1].min()), float(xz[:, 1].max())],
+    }
+    return dance, report
+
+
+def stage_violation(root_xz: np.ndarray, stage) -> float:
+    """Largest distance (m) the root ``(F, 2)`` (x, z) goes outside ``stage`` (0 when inside)."""
+    if stage is None:
+        return 0.0
+    x, z = np.asarray(root_xz)[:, 0], np.asarray(root_xz)[:, 1]
+    over = np.maximum.reduce(
+        [stage.x[0] - x, x - stage.x[1], stage.z[0] - z, z - stage.z[1], np.zeros_like(x)]
+    )
+    return float(over.max()) if over.size else 0.0
+
+
+def render(
+    graph: MotionGraph,
+    analysis,
+    result,
+    spec: Spec,
+    out_dir: str | Path,
+    *,
+    exporter=None,
+    extra_provenance: dict | None = None,
+) -> dict:
+    """Write every alternative of ``result`` (a ``SearchResult`` or its ``to_dict()``) into ``out_dir``.
+
+    ``analysis``: the song's ``MusicAnalysis``. FBX files are written through ``exporter`` (a
+    ``dancegraph.motion.fbx.FbxExporter``; default the shared warm one) when the spec asks for
+    them. Returns ``{"files": [paths relative to out_dir], "timeline": {...}}``.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    found = result.to_dict() if hasattr(result, "to_dict") else dict(result)
+    alternatives = found.get("alternatives") or []
+    if not alternatives:
+        raise DanceGraphError(
+            "the search result has no alternatives to render", code="render_empty"
+        )
+    fps = float(spec.output.fps)
+    formats = list(spec.output.formats)
+    if "fbx" in formats and exporter is None:
+        from dancegraph.motion.fbx import FbxError, fbx_available, shared_exporter
+
+        if not fbx_available():
+            raise FbxError(
+                "FBX output needs Blender (scripts/install-blender.sh); or ask for "
+                'output.formats ["bvh"] only',
+                code="fbx_unavailable",
+                field="spec.output.formats",
+            )
+        exporter = shared_exporter()
+    bars = np.asarray(analysis.bars, dtype=float).reshape(-1, 2)
+    frames = bar_frames(bars, fps) if len(bars) else np.zeros((0, 2), dtype=np.int64)
+    (out / "alternatives").mkdir(parents=True, exist_ok=True)
+
+    files: list[str] = []
+    alt_entries = []
+    for k, alt in enumerate(alternatives):
+        nodes = list(alt["nodes"])
+        dance, report = render_path(
+            graph,
+            nodes,
+            bars,
+            fps,
+            duration_s=float(analysis.duration_s),
+            placements=alt.get("placements"),
+            foot_cleanup=spec.output.foot_cleanup,
+        )
+        outside = stage_violation(dance.root_positions[:, [0, 2]], spec.stage)
+        report["stage"]["outside_m"] = outside
+        entry_files = {}
+        if "bvh" in formats or "fbx" in formats:
+            bvh_rel = f"alternatives/{k}.bvh"
+            write_bvh(dance, out / bvh_rel)
+            entry_files["bvh"] = bvh_rel
+        if "fbx" in formats:
+            fbx_rel = f"alternatives/{k}.fbx"
+            exporter.convert(out / bvh_rel, out / fbx_rel, fps=fps)
+            entry_files["fbx"] = fbx_rel
+        if "bvh" not in formats:
+            (out / bvh_rel).unlink()
+            del entry_files["bvh"]
+        files.extend(entry_files.values())
+        alt_entries.append(
+            {
+                "index": k,
+                "files": entry_files,
+                "cost": _plain(alt.get("cost")),
+                "violations": _plain(alt.get("violations", [])),
+                "frames": dance.n_frames,
+                "bars": [_bar_entry(graph, alt, b, node) for b, node in enumerate(nodes)],
+                "seams": report["seams"],
+                "foot_skate": report.get("foot_skate"),
+                "stage": report["stage"],
+                "drift": report["drift"],
+                **{
+                    key: _plain(v)
+                    for key, v in alt.items()
+                    if key not in {"nodes", "per_bar", "cost", "violations", "placements"}
+                },
+            }
+        )
+
+    timeline = {
+        "format": TIMELINE_FORMAT,
+        "fps": fps,
+        "duration_s": float(analysis.duration_s),
+        "frames": int(round(float(analysis.duration_s) * fps)) if alt_entries else 0,
+        "song": {
+            "tempo_bpm": float(analysis.tempo_bpm),
+            "tempo_confidence": float(analysis.tempo_confidence),
+            "meter": int(analysis.meter),
+            "method": analysis.method,
+            "warnings": list(analysis.warnings),
+        },
+        "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
+        "phrases": _plain(list(analysis.phrases)),
+        "alternatives": alt_entries,
+        "constraints": _plain(found.get("constraints", {})),
+        "provenance": _provenance(graph, spec, analysis, extra_provenance),
+        "render_seconds": round(time.perf_counter() - t0, 3),
+    }
+    timeline["frames"] = max(a["frames"] for a in alt_entries)
+    (out / TIMELINE).write_text(json.dumps(timeline, indent=1, default=_json_default))
+    files.append(TIMELINE)
+    return {"files": files, "timeline": timeline}
+
+
+def _music_bar(analysis, frames: np.ndarray, b: int) -> dict:
+    entry = {
+        "index": b,
+        "start_s": float(analysis.bars[b][0]),
+        "end_s": float(analysis.bars[b][1]),
+        "start_frame": int(frames[b, 0]),
+        "end_frame": int(frames[b, 1]),
+    }
+    if b < len(analysis.bar_beats):
+        entry["beats"] = [float(x) for x in analysis.bar_beats[b]]
+    if b < len(analysis.tags):
+        entry["tag"] = _plain(dict(analysis.tags[b]))
+    return entry
+
+
+def _bar_entry(graph: MotionGraph, alt: dict, b: int, node_id: str) -> dict:
+    i = graph.node_index(node_id)
+    clip = graph.clips[int(graph.node_clip[i])]
+    bar = int(graph.node_bar[i])
+    kind = KINDS[int(graph.node_kind[i])]
+    sources = [graph.node_ids[int(s)] for s in np.asarray(graph.node_source[i]) if s >= 0]
+    entry = {
+        "bar": b,
+        "node": node_id,
+        "source": {
+            "take": clip,
+            "bar": bar,
+            "frames": _source_frames(graph, clip, bar),
+            "augmentation": None if kind == "original" else kind,
+            "from_nodes": sources,
+        },
+        "motif": int(graph.motif[i]),
+    }
+    per_bar = alt.get("per_bar") or []
+    if b < len(per_bar):
+        entry["cost"] = _plain({k: v for k, v in per_bar[b].items() if k not in {"node", "bar"}})
+    return entry
+
+
+def _source_frames(graph: MotionGraph, clip: str, bar: int) -> list[int] | None:
+    """``[start, end)`` frames of the bar in its source take (the dataset's frame numbering)."""
+    table = (graph.manifest.get("bar_frames") or {}).get(clip)
+    if table is None:
+        return None
+    entry = (
+        table.get(str(bar), table.get(bar))
+        if isinstance(table, dict)
+        else (table[bar] if 0 <= bar < len(table) else None)
+    )
+    return [int(x) for x in entry] if entry is not None else None
+
+
+def _provenance(graph: MotionGraph, spec: Spec, analysis, extra: dict | None) -> dict:
+    manifest = graph.manifest
+    dataset = dict(manifest.get("dataset") or {})
+    dataset.setdefault("name", graph.name)
+    embedding = manifest.get("embedding") or {}
+    prov = {
+        "dataset": dataset,
+        "graph": {
+            "name": graph.name,
+            "version": graph.version,
+            "format": manifest.get("format"),
+            "created": manifest.get("created"),
+            "params": manifest.get("params", {}),
+        },
+        "models": {
+            "style_embedding": embedding.get("version"),
+            "beat_tracker": analysis.method,
+            "beat_tracker_weights": _beatnet_version() if analysis.method == "beatnet" else None,
+            "dancegraph": __version__,
+        },
+        "spec": spec.model_dump(mode="json"),
+        "rendered_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    if extra:
+        prov.update(_plain(extra))
+    return prov
+
+
+def _beatnet_version() -> str | None:
+    try:
+        from dancegraph.music.weights import BEATNET_VERSION
+    except ImportError:
+        return None
+    return f"BeatNet {BEATNET_VERSION} (CC BY 4.0)"
+
+
+def _plain(obj):
+    """Numpy scalars/arrays and tuples inside ``obj`` → JSON types (NaN/inf → None)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _plain(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj)}")
+
+
+def _audio_provenance(path: Path) -> dict:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            digest.update(chunk)
+    return {"file": path.name, "sha256": digest.hexdigest()}
+
+
+def synthesize(
+    audio,
+    graph: MotionGraph,
+    spec: Spec,
+    out_dir: str | Path,
+    *,
+    analysis=None,
+    exporter=None,
+) -> dict:
+    """Song → dance files: analysis (unless given) → graph search → :func:`render`.
+
+    ``audio``: a path or ``(N,)`` samples (then pass ``analysis``). Returns render's dict plus
+    ``analysis`` (the summary) and ``search`` (``SearchResult.to_dict()``).
+    """
+    from dancegraph.graph.search import search
+    from dancegraph.music.analysis import analyze
+
+    if analysis is None:
+        analysis = analyze(audio)
+    found = search(graph, analysis, spec)
+    found_dict = found.to_dict()
+    found_dict.setdefault("graph", {"name": graph.name, "version": graph.version})
+    source = {"audio": _audio_provenance(Path(audio))} if isinstance(audio, str | Path) else {}
+    rendered = render(
+        graph,
+        analysis,
+        found_dict,
+        spec,
+        out_dir,
+        exporter=exporter,
+        extra_provenance=source or None,
+    )
+    return {**rendered, "analysis": analysis.summary(), "search": found_dict}

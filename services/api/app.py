@@ -1,0 +1,195 @@
+"""The FastAPI application: ``uvicorn services.api.app:app``.
+
+``create_app(settings)`` builds an app around explicit settings (tests, the embedded launcher);
+the module-level ``app`` reads them from the environment on first use, so importing it (e.g. to
+export ``openapi.yaml``) touches no database, folder or broker.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from contextlib import asynccontextmanager
+from functools import cached_property
+
+from fastapi import FastAPI, Request
+
+from dancegraph import __version__
+from dancegraph.spec import Spec
+from dancegraph.store import ObjectStore
+from services.api import metrics, problems
+from services.api.routers import batches, datasets, health, jobs
+from services.config import Settings, get_settings
+
+log = logging.getLogger("dancegraph.api")
+
+DESCRIPTION = """Music in, dance out. Upload a song with a constraint spec; get ranked dance
+alternatives as BVH and FBX cut from a motion-capture library, locked to the song's bars.
+
+Authenticate with an API key (`X-API-Key: dg_…` or `Authorization: Bearer dg_…`); create one with
+`dancegraph keys create --tenant NAME`. A tenant sees only its own jobs and batches (another
+tenant's id answers 404 like a missing one).
+
+Errors are RFC 9457 problem details (`application/problem+json`) with a stable `code` and the
+offending `field`; a failed job carries the same codes in `error`:
+
+| status | code | when |
+|---|---|---|
+| 401 | `auth_missing`, `auth_invalid` | no or unknown API key |
+| 404 | `job_not_found`, `batch_not_found`, `unknown_dataset`, `result_not_found` | no such thing (for you) |
+| 409 | `idempotency_key_reused`, `job_finished`, `job_not_finished`, `job_failed`, `job_cancelled` | state conflicts |
+| 413 | `upload_too_large`, `spec_too_large` | over the size limit (checked while streaming) |
+| 415 | `content_type_unsupported`, `audio_undecodable`, `audio_unsupported_codec` | not multipart, not audio |
+| 422 | `audio_missing`, `audio_multiple`, `audio_empty`, `audio_too_short`, `audio_too_long` | the audio part |
+| 422 | `spec_malformed`, `spec_invalid`, `spec_unknown_field`, `unknown_dataset` | the spec part |
+| 422 | `request_invalid`, `cursor_invalid`, `batch_too_large` | query, headers, batch size |
+| 503 | `queue_unavailable` | the broker is down; nothing was kept |
+
+Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`."""
+
+
+class AppContext:
+    """What requests share: settings, object store, graph store client, enqueue function."""
+
+    def __init__(
+        self,
+        settings: Settings | None = None,
+        *,
+        enqueue: Callable[[str], object] | None = None,
+        graphstore=None,
+    ):
+        self._settings = settings
+        self.enqueue = enqueue
+        self._graphstore = graphstore
+
+    @cached_property
+    def settings(self) -> Settings:
+        return self._settings or get_settings()
+
+    @cached_property
+    def store(self) -> ObjectStore:
+        return ObjectStore(self.settings.store_root)
+
+    def graphstore(self):
+        """The graph store client per ``Settings.graphstore_url``; None when none is available."""
+        if self._graphstore is None:
+            try:
+                from services.graphstore.client import HttpGraphStore, LocalGraphStore
+            except ImportError:
+                return None
+            url = self.settings.graphstore_url
+            self._graphstore = (
+                LocalGraphStore(self.store) if url == "local" else HttpGraphStore(url)
+            )
+        return self._graphstore
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    enqueue: Callable[[str], object] | None = None,
+    graphstore=None,
+    migrate: bool | None = None,
+    configure_logging: bool = False,
+) -> FastAPI:
+    """Build the API. ``migrate``: run ``alembic upgrade head`` at start-up (default: on SQLite)."""
+    ctx = AppContext(settings, enqueue=enqueue, graphstore=graphstore)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        if configure_logging:  # JSON lines with the job id, as the worker writes them
+            import os
+
+            from services.worker.logs import configure
+
+            configure(
+                os.environ.get("DANCEGRAPH_LOG_LEVEL", "INFO"), json_logs=ctx.settings.log_json
+            )
+        import dancegraph.music.decode  # noqa: F401  (warm: the first upload should not pay the import)
+
+        do_migrate = ctx.settings.is_sqlite if migrate is None else migrate
+        if do_migrate:
+            from services.db import upgrade_schema
+
+            upgrade_schema(ctx.settings.database_url)
+        yield
+
+    app = FastAPI(
+        title="DanceGraph API",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        openapi_tags=[
+            {"name": "jobs", "description": "one song → dance alternatives"},
+            {"name": "batches", "description": "many songs, one spec"},
+            {"name": "datasets", "description": "motion libraries with built graphs"},
+            {"name": "health", "description": "liveness, readiness, metrics"},
+        ],
+    )
+    app.state.ctx = ctx
+    problems.install(app)
+    for module in (jobs, batches, datasets, health):
+        app.include_router(module.router)
+
+    @app.middleware("http")
+    async def _observe(request: Request, call_next):
+        start = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        template = getattr(route, "path", "unmatched")
+        metrics.HTTP_REQUESTS.labels(request.method, template, str(response.status_code)).inc()
+        metrics.HTTP_LATENCY.labels(request.method, template).observe(time.perf_counter() - start)
+        return response
+
+    def openapi():
+        if app.openapi_schema is None:
+            from fastapi.openapi.utils import get_openapi
+
+            schema = get_openapi(
+                title=app.title,
+                version=app.version,
+                description=app.description,
+                routes=app.routes,
+                tags=app.openapi_tags,
+            )
+            comps = schema.setdefault("components", {}).setdefault("schemas", {})
+            comps["Problem"] = problems.Problem.model_json_schema(
+                ref_template="#/components/schemas/{model}"
+            )
+            comps["FieldError"] = (
+                comps["Problem"].pop("$defs", {}).get("FieldError")
+                or problems.FieldError.model_json_schema()
+            )
+            spec_schema = Spec.model_json_schema(ref_template="#/components/schemas/{model}")
+            for name, sub in spec_schema.pop("$defs", {}).items():
+                comps.setdefault(name, sub)
+            comps["Spec"] = spec_schema
+            _problem_validation_responses(schema)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi
+    return app
+
+
+def _problem_validation_responses(schema: dict) -> None:
+    """Document 422s as the problem+json they are (FastAPI assumes its own error shape)."""
+    problem = {
+        "description": "problem details",
+        "content": {
+            "application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}
+        },
+    }
+    for path_item in schema.get("paths", {}).values():
+        for op in path_item.values():
+            responses = op.get("responses", {})
+            body = responses.get("422", {}).get("content", {})
+            if "application/json" in body and "HTTPValidationError" in str(body):
+                responses["422"] = problem
+    comps = schema.get("components", {}).get("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):
+        comps.pop(name, None)
+
+
+app = create_app(configure_logging=True)

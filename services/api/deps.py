@@ -1,0 +1,81 @@
+"""Request dependencies in one place: settings, database session, object store, graph store,
+the calling tenant (API key), and the enqueue function."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from dancegraph.store import ObjectStore
+from services import jobs
+from services.api.problems import ApiError
+from services.config import Settings
+from services.db import get_sessionmaker
+from services.models import Tenant
+
+_api_key_header = APIKeyHeader(
+    name="X-API-Key", auto_error=False, description="API key (or use Bearer)"
+)
+_bearer = HTTPBearer(auto_error=False, description="API key as a bearer token")
+
+
+def get_settings_dep(request: Request) -> Settings:
+    return request.app.state.ctx.settings
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    session = get_sessionmaker(request.app.state.ctx.settings.database_url)()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def get_store(request: Request) -> ObjectStore:
+    return request.app.state.ctx.store
+
+
+def get_tenant(
+    api_key: str | None = Security(_api_key_header),
+    bearer: HTTPAuthorizationCredentials | None = Security(_bearer),
+    db: Session = Depends(get_db),
+) -> Tenant:
+    """The tenant owning the request's API key; 401 when the key is missing or unknown."""
+    key = api_key or (bearer.credentials if bearer is not None else None)
+    challenge = {"WWW-Authenticate": 'Bearer realm="dancegraph"'}
+    if not key:
+        raise ApiError(
+            401,
+            "auth_missing",
+            "an API key is required (X-API-Key or Authorization: Bearer)",
+            field="header.X-API-Key",
+            headers=challenge,
+        )
+    tenant = jobs.tenant_for_key(db, key)
+    if tenant is None:
+        raise ApiError(
+            401,
+            "auth_invalid",
+            "the API key is not valid",
+            field="header.X-API-Key",
+            headers=challenge,
+        )
+    return tenant
+
+
+def get_enqueue(request: Request):
+    """The function that hands a job id to the queue (overridable in ``app.state.enqueue``)."""
+    enqueue = request.app.state.ctx.enqueue
+    if enqueue is not None:
+        return enqueue
+    from services.worker.enqueue import enqueue_job
+
+    return enqueue_job
+
+
+def get_graphstore(request: Request):
+    """The graph store client (in-process or HTTP per ``Settings.graphstore_url``), or None."""
+    return request.app.state.ctx.graphstore()

@@ -1,0 +1,189 @@
+"""RFC 9457 problem details for every error the API answers.
+
+Every problem carries a stable ``code`` and, where one input is at fault, ``field`` (``audio``,
+``spec.alternatives``, ``query.limit``, ``header.Idempotency-Key``, ``job_id`` …). Validation
+problems also list every failure in ``errors``. Bad input is never a 500.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field, ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from dancegraph.errors import DanceGraphError
+
+log = logging.getLogger("dancegraph.api")
+
+PROBLEM_JSON = "application/problem+json"
+TYPE_BASE = "https://dancegraph.dev/problems/"
+
+
+class FieldError(BaseModel):
+    field: str
+    code: str
+    message: str
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem detail with DanceGraph's ``code`` and ``field`` extensions."""
+
+    type: str = Field(..., description="URI naming the problem kind")
+    title: str
+    status: int
+    detail: str
+    code: str = Field(..., description="stable machine-readable error code")
+    field: str | None = Field(None, description="the offending input, when one is at fault")
+    instance: str | None = None
+    errors: list[FieldError] | None = None
+
+
+class ApiError(DanceGraphError):
+    """An error raised by the API layer itself, with its HTTP status."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        *,
+        field: str | None = None,
+        headers: dict | None = None,
+        errors: list[dict] | None = None,
+    ):
+        super().__init__(message, code=code, field=field)
+        self.status = status
+        self.headers = headers or {}
+        self.errors = errors
+
+
+_TITLES = {
+    400: "Bad Request",
+    401: "Unauthorized",
+    403: "Forbidden",
+    404: "Not Found",
+    405: "Method Not Allowed",
+    409: "Conflict",
+    411: "Length Required",
+    413: "Content Too Large",
+    415: "Unsupported Media Type",
+    422: "Unprocessable Content",
+    429: "Too Many Requests",
+    500: "Internal Server Error",
+    503: "Service Unavailable",
+}
+
+
+def problem_response(
+    status: int,
+    code: str,
+    detail: str,
+    *,
+    field: str | None = None,
+    instance: str | None = None,
+    errors: list[dict] | None = None,
+    headers: dict | None = None,
+) -> JSONResponse:
+    body: dict[str, Any] = {
+        "type": TYPE_BASE + code,
+        "title": _TITLES.get(status, "Error"),
+        "status": status,
+        "detail": detail,
+        "code": code,
+        "field": field,
+        "instance": instance,
+    }
+    if errors:
+        body["errors"] = errors
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
+
+
+def _loc_to_field(loc: tuple | list, prefix: str | None = None) -> str:
+    parts = [str(p) for p in loc if p != "body" or prefix is None]
+    if prefix:
+        parts = [prefix, *parts]
+    out = ""
+    for p in parts:
+        if p.isdigit() and out:
+            out += f"[{p}]"
+        else:
+            out += ("." if out else "") + p
+    return out or (prefix or "request")
+
+
+def validation_errors(
+    exc: ValidationError | RequestValidationError, prefix: str | None = None
+) -> list[dict]:
+    """Pydantic errors as ``[{field, code, message}]``; unknown fields get ``*_unknown_field``."""
+    out = []
+    for err in exc.errors():
+        kind = err.get("type", "invalid")
+        field = _loc_to_field(err.get("loc", ()), prefix)
+        out.append({"field": field, "code": kind, "message": str(err.get("msg", "invalid value"))})
+    return out
+
+
+def spec_problem_code(errors: list[dict]) -> str:
+    return (
+        "spec_unknown_field"
+        if any(e["code"] == "extra_forbidden" for e in errors)
+        else "spec_invalid"
+    )
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers that turn every error into problem+json."""
+
+    @app.exception_handler(DanceGraphError)
+    async def _domain(request: Request, exc: DanceGraphError):
+        status = int(getattr(exc, "status", 400) or 400)
+        headers = getattr(exc, "headers", None)
+        if status >= 500:
+            log.error("server error %s: %s", exc.code, exc.message)
+        return problem_response(
+            status,
+            exc.code,
+            exc.message,
+            field=exc.field,
+            instance=request.url.path,
+            headers=headers,
+            errors=getattr(exc, "errors", None),
+        )
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        errors = validation_errors(exc)
+        first = errors[0] if errors else {"field": "request", "message": "invalid request"}
+        return problem_response(
+            422,
+            "request_invalid",
+            f"{first['field']}: {first['message']}",
+            field=first["field"],
+            instance=request.url.path,
+            errors=errors,
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        code = {404: "not_found", 405: "method_not_allowed"}.get(
+            exc.status_code, f"http_{exc.status_code}"
+        )
+        return problem_response(
+            exc.status_code,
+            code,
+            str(exc.detail),
+            instance=request.url.path,
+            headers=getattr(exc, "headers", None),
+        )
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception):
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return problem_response(
+            500, "internal_error", "internal server error", instance=request.url.path
+        )

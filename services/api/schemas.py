@@ -1,0 +1,109 @@
+"""Response models of the v1 API (they define ``openapi.yaml``)."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, Field
+
+
+def _as_utc(value: datetime) -> datetime:
+    # SQLite hands back naive datetimes; every stored time is UTC
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+UtcDatetime = Annotated[datetime, AfterValidator(_as_utc)]
+
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+
+class AudioOut(BaseModel):
+    filename: str
+    sha256: str
+    bytes: int
+    container: str
+    duration_s: float | None = Field(None, description="from the file header")
+
+
+class ErrorOut(BaseModel):
+    code: str = Field(..., description="stable error code, as in problem details")
+    message: str
+    field: str | None = None
+
+
+class AlternativeOut(BaseModel):
+    index: int = Field(..., description="k in the download URLs, from 0 (best first)")
+    cost: float | None = Field(None, description="total cost C of the path (lower is better)")
+    bars: int | None = Field(None, description="number of bars (nodes) in the path")
+    violations: list[Any] = Field(default_factory=list)
+    downloads: dict[str, str] = Field(default_factory=dict, description="format → URL")
+
+
+class WebhookOut(BaseModel):
+    status: str
+    attempts: int
+    last_error: str | None = None
+    delivered_at: UtcDatetime | None = None
+
+
+class JobOut(BaseModel):
+    id: str
+    url: str
+    status: JobStatus
+    stage: str
+    progress: float = Field(..., ge=0, le=100, description="percent")
+    batch_id: str | None = None
+    created_at: UtcDatetime
+    updated_at: UtcDatetime
+    started_at: UtcDatetime | None = None
+    finished_at: UtcDatetime | None = None
+    attempts: int
+    audio: AudioOut
+    spec: dict[str, Any]
+    analysis: dict[str, Any] | None = Field(None, description="music analysis summary")
+    alternatives: list[AlternativeOut] = Field(default_factory=list)
+    constraint_report: Any | None = None
+    timeline_url: str | None = None
+    error: ErrorOut | None = None
+    webhook: WebhookOut | None = None
+
+
+class JobPage(BaseModel):
+    items: list[JobOut]
+    next_cursor: str | None = Field(
+        None, description="pass as ?cursor= for the next page; null at the end"
+    )
+
+
+class BatchOut(BaseModel):
+    id: str
+    url: str
+    status: Literal["queued", "running", "completed"]
+    created_at: UtcDatetime
+    spec: dict[str, Any]
+    counts: dict[str, int] = Field(..., description="jobs per status")
+    jobs: list[JobOut]
+
+
+class DatasetOut(BaseModel):
+    name: str
+    version: str
+    licence: str
+    embedding: str
+    stats: dict[str, Any]
+    created_at: UtcDatetime | None = None
+
+
+class DatasetList(BaseModel):
+    items: list[DatasetOut]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    version: str
+
+
+class Readiness(BaseModel):
+    status: Literal["ready", "not_ready"]
+    checks: dict[str, str] = Field(..., description="component → 'ok' or the reason it is not")

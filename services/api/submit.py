@@ -1,0 +1,192 @@
+"""Accepting uploads as jobs: validate everything, store, write rows, enqueue — in that order,
+so a refused request leaves nothing behind and a stored job is always enqueued or removed."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from starlette.datastructures import UploadFile
+
+from dancegraph.spec import Spec
+from dancegraph.store import ObjectStore
+from services import jobs
+from services.api import catalog
+from services.api.metrics import JOBS_CREATED, UPLOAD_BYTES
+from services.api.problems import ApiError
+from services.api.uploads import CheckedAudio, check_audio
+from services.config import Settings
+from services.db import session_scope
+from services.models import Batch, Job
+
+log = logging.getLogger("dancegraph.api")
+
+
+def check_dataset(settings: Settings, spec: Spec, graphstore) -> None:
+    with session_scope(settings.database_url) as session:
+        if catalog.find_dataset(session, spec.dataset, graphstore) is None:
+            raise ApiError(
+                422, "unknown_dataset", f"no dataset named {spec.dataset!r}", field="spec.dataset"
+            )
+
+
+def spec_json(spec: Spec) -> dict:
+    """The spec as stored on the job row: every field, defaults filled in, JSON types."""
+    return spec.model_dump(mode="json")
+
+
+_spec_json = spec_json  # the name the worker's submit task imports
+
+
+def submit_job(
+    settings: Settings,
+    store: ObjectStore,
+    enqueue: Callable[[str], object],
+    *,
+    tenant_id: str,
+    spec: Spec,
+    upload: UploadFile,
+    idempotency_key: str | None,
+    graphstore,
+) -> tuple[Job, bool]:
+    """Validate, store and enqueue one job; returns ``(job, created)`` (False: idempotent replay)."""
+    check_dataset(settings, spec, graphstore)
+    checked = check_audio(upload, settings, store)
+    spec_dict = spec_json(spec)
+    try:
+        if idempotency_key is not None:
+            with session_scope(settings.database_url) as session:
+                existing = jobs.find_job_by_idempotency_key(session, tenant_id, idempotency_key)
+                if existing is not None:
+                    if existing.audio_sha256 != checked.sha256 or existing.spec != spec_dict:
+                        raise ApiError(
+                            409,
+                            "idempotency_key_reused",
+                            "this Idempotency-Key was used for a different request",
+                            field="header.Idempotency-Key",
+                        )
+                    return existing, False
+        stored = checked.store(store)
+    finally:
+        checked.discard()
+    with session_scope(settings.database_url) as session:
+        job, created = jobs.create_job(
+            session,
+            tenant_id=tenant_id,
+            spec=spec_dict,
+            audio_key=stored.key,
+            audio_sha256=stored.sha256,
+            audio_filename=stored.filename,
+            audio_bytes=stored.size,
+            audio_format=stored.container,
+            audio_duration_s=stored.duration_s,
+            idempotency_key=idempotency_key,
+        )
+    if not created:  # lost a race with the same key: the other request enqueued it
+        if job.audio_sha256 != stored.sha256 or job.spec != spec_dict:
+            raise ApiError(
+                409,
+                "idempotency_key_reused",
+                "this Idempotency-Key was used for a different request",
+                field="header.Idempotency-Key",
+            )
+        return job, False
+    _enqueue_or_remove(settings, enqueue, [job.id])
+    log.info("job accepted", extra={"job_id": job.id, "tenant_id": tenant_id, "bytes": stored.size})
+    JOBS_CREATED.inc()
+    UPLOAD_BYTES.inc(stored.size)
+    return job, True
+
+
+def submit_batch(
+    settings: Settings,
+    store: ObjectStore,
+    enqueue: Callable[[str], object],
+    *,
+    tenant_id: str,
+    spec: Spec,
+    uploads: list[UploadFile],
+    idempotency_key: str | None,
+    graphstore,
+) -> tuple[Batch, list[Job], bool]:
+    """Validate every song first, then store them all, write the batch and jobs, enqueue."""
+    if len(uploads) > settings.max_batch_items:
+        raise ApiError(
+            422,
+            "batch_too_large",
+            f"at most {settings.max_batch_items} songs per batch",
+            field="audio",
+        )
+    check_dataset(settings, spec, graphstore)
+    spec_dict = spec_json(spec)
+    if idempotency_key is not None:
+        with session_scope(settings.database_url) as session:
+            batch = (
+                session.query(Batch)
+                .filter_by(tenant_id=tenant_id, idempotency_key=idempotency_key)
+                .one_or_none()
+            )
+            if batch is not None:
+                return batch, jobs.batch_jobs(session, batch.id), False
+    checked: list[CheckedAudio] = []
+    try:
+        for i, upload in enumerate(uploads):
+            checked.append(check_audio(upload, settings, store, field=f"audio[{i}]"))
+        stored = [c.store(store) for c in checked]
+    finally:
+        for c in checked:
+            c.discard()
+    with session_scope(settings.database_url) as session:
+        batch, _ = jobs.create_batch(
+            session, tenant_id=tenant_id, spec=spec_dict, idempotency_key=idempotency_key
+        )
+        rows = []
+        for s in stored:
+            job, _ = jobs.create_job(
+                session,
+                tenant_id=tenant_id,
+                spec=spec_dict,
+                audio_key=s.key,
+                audio_sha256=s.sha256,
+                audio_filename=s.filename,
+                audio_bytes=s.size,
+                audio_format=s.container,
+                audio_duration_s=s.duration_s,
+                batch_id=batch.id,
+            )
+            rows.append(job)
+    _enqueue_or_remove(settings, enqueue, [j.id for j in rows], batch_id=batch.id)
+    JOBS_CREATED.inc(len(rows))
+    UPLOAD_BYTES.inc(sum(s.size for s in stored))
+    with session_scope(settings.database_url) as session:
+        return session.get(Batch, batch.id), jobs.batch_jobs(session, batch.id), True
+
+
+def _enqueue_or_remove(
+    settings: Settings, enqueue, job_ids: list[str], batch_id: str | None = None
+) -> None:
+    """Enqueue each job; if the queue refuses the first, remove the rows (503), else fail the rest."""
+    for i, job_id in enumerate(job_ids):
+        try:
+            enqueue(job_id)
+        except Exception as exc:
+            log.error("enqueue failed for job %s: %s", job_id, exc)
+            with session_scope(settings.database_url) as session:
+                if i == 0:
+                    for jid in job_ids:
+                        session.query(Job).filter_by(id=jid).delete()
+                    if batch_id is not None:
+                        session.query(Batch).filter_by(id=batch_id).delete()
+                else:
+                    for jid in job_ids[i:]:
+                        jobs.fail_job(
+                            session, jid, "queue_unavailable", "the job queue refused the job"
+                        )
+            if i == 0:
+                raise ApiError(
+                    503,
+                    "queue_unavailable",
+                    "the job queue is not reachable; try again later",
+                    headers={"Retry-After": "5"},
+                ) from exc
+            return

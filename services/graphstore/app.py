@@ -1,0 +1,109 @@
+"""The graph-store service: prebuilt motion graphs in memory, path search, node and clip data.
+
+A thin HTTP shell over :class:`services.graphstore.client.LocalGraphStore`, which loads each
+dataset's current graph artifact from the object store (``dancegraph.graph.artifact``) and
+reloads it when a new build lands (the old version keeps answering requests already holding it).
+
+Run: ``uvicorn services.graphstore.app:app`` (object store root: ``DANCEGRAPH_STORE``, or
+``$DANCEGRAPH_HOME/store``). Errors are RFC 9457 problem details with a stable ``code``: an
+unknown graph is ``404 unknown_dataset``, an unknown node ``404 unknown_node``, a bad spec
+``422 spec_invalid`` / ``spec_unknown_field``, a bad analysis ``422 analysis_invalid``.
+
+Endpoints:
+
+- ``GET /v1/graphs`` → ``{items: [{name, version, graph_key, nodes, edges, embedding, ...}], next_cursor}``
+- ``GET /v1/graphs/{name}`` → version, stats, which embedding, build parameters, dataset
+- ``POST /v1/graphs/{name}/search`` ``{analysis, spec}`` → ``SearchResult.to_dict()`` + ``graph``
+- ``GET /v1/graphs/{name}/skeleton`` → ``Skeleton.to_dict()``
+- ``GET /v1/graphs/{name}/nodes/{node_id}`` → provenance (take, bar, frames, augmentation)
+- ``GET /v1/graphs/{name}/nodes/{node_id}/motion`` → the bar's motion (fps, root, rotations)
+- ``GET /healthz`` → liveness and the loaded graph versions
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from fastapi import Body, FastAPI
+from fastapi.responses import JSONResponse
+
+from dancegraph import __version__
+from dancegraph.paths import store_dir
+from dancegraph.store import ObjectStore
+from services.api.problems import install as install_problem_handlers
+from services.graphstore.client import LocalGraphStore
+
+
+def create_app(store: ObjectStore | None = None) -> FastAPI:
+    """The graph-store app over ``store`` (default: the embedded object store, opened lazily)."""
+    app = FastAPI(
+        title="DanceGraph graph store",
+        version=__version__,
+        description="Prebuilt motion graphs per dataset: search, node and clip data.",
+    )
+    install_problem_handlers(app)
+    state: dict[str, LocalGraphStore] = {}
+
+    def graphs() -> LocalGraphStore:
+        if "local" not in state:
+            state["local"] = LocalGraphStore(store or ObjectStore(store_dir()))
+        return state["local"]
+
+    app.state.graphs = graphs
+
+    @app.get("/healthz")
+    def healthz() -> dict:
+        return {"status": "ok", "loaded": graphs().loaded()}
+
+    @app.get("/v1/graphs")
+    def list_graphs() -> dict:
+        return {"items": graphs().list_graphs(), "next_cursor": None}
+
+    @app.get("/v1/graphs/{name}")
+    def graph_info(name: str) -> dict:
+        return graphs().graph_info(name)
+
+    @app.post("/v1/graphs/{name}/search")
+    def search(
+        name: str,
+        analysis: dict = Body(..., description="MusicAnalysis.to_dict() of the song"),
+        spec: dict | None = Body(None, description="the constraint spec (dancegraph.spec.Spec)"),
+    ) -> JSONResponse:
+        result = graphs().search(name, analysis, spec or {})
+        return JSONResponse(_jsonable(result))
+
+    @app.get("/v1/graphs/{name}/skeleton")
+    def skeleton(name: str) -> dict:
+        return graphs().skeleton(name).to_dict()
+
+    @app.get("/v1/graphs/{name}/nodes/{node_id}")
+    def node(name: str, node_id: str) -> dict:
+        return graphs().node(name, node_id)
+
+    @app.get("/v1/graphs/{name}/nodes/{node_id}/motion")
+    def node_motion(name: str, node_id: str) -> dict:
+        motion = graphs().node_motion(name, node_id)
+        return {
+            "node": node_id,
+            "fps": motion.fps,
+            "frames": motion.n_frames,
+            "root_positions": np.round(motion.root_positions, 6).tolist(),
+            "rotations": np.round(motion.rotations, 6).tolist(),
+        }
+
+    return app
+
+
+def _jsonable(obj):
+    """Numpy scalars and arrays inside a result → plain JSON types."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+app = create_app()

@@ -1,0 +1,342 @@
+"""Graph-store clients: one interface, in-process (`LocalGraphStore`) or over HTTP (`HttpGraphStore`).
+
+The worker and the CLI talk to the graph store through :class:`GraphStoreClient`; the embedded
+default uses :class:`LocalGraphStore` (graphs loaded in this process from the object store), a
+production deployment :class:`HttpGraphStore` (the ``services.graphstore.app`` service). Both
+answer the same methods with the same JSON-able dicts and raise the same ``DanceGraphError`` codes
+(``unknown_dataset``, ``unknown_node``, ``spec_invalid``, ``analysis_invalid``, ...).
+"""
+
+from __future__ import annotations
+
+import threading
+from abc import ABC, abstractmethod
+
+import numpy as np
+from pydantic import ValidationError
+
+from dancegraph.errors import DanceGraphError, NotFoundError, SpecError
+from dancegraph.graph import artifact
+from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.spec import Spec
+from dancegraph.store import ObjectStore
+
+
+class GraphStoreClient(ABC):
+    """What the worker and the CLI need from the graph store."""
+
+    @abstractmethod
+    def list_graphs(self) -> list[dict]:
+        """Every dataset with a built graph: ``[{name, version, graph_key, stats, embedding, licence}]``."""
+
+    @abstractmethod
+    def graph_info(self, name: str) -> dict:
+        """One graph: version, build parameters, stats, which embedding, the dataset it was built from."""
+
+    @abstractmethod
+    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
+        """Paths through ``dataset``'s graph for a song (``MusicAnalysis.to_dict()``) and a spec.
+
+        Returns ``SearchResult.to_dict()`` plus ``graph: {name, version}`` (the version searched).
+        """
+
+    @abstractmethod
+    def node(self, dataset: str, node_id: str) -> dict:
+        """Provenance of one node: take, bar, source frames, kind (augmentation), tags, motif."""
+
+    @abstractmethod
+    def skeleton(self, dataset: str) -> Skeleton:
+        """The dataset's skeleton."""
+
+    @abstractmethod
+    def node_motion(self, dataset: str, node_id: str) -> Motion:
+        """The node's bar as motion (frames spread evenly over the source bar's length)."""
+
+
+def parse_spec(dataset: str, spec: dict | Spec | None) -> Spec:
+    """Validate ``spec`` for a search of ``dataset`` (the path's dataset wins over the spec's)."""
+    if isinstance(spec, Spec):
+        data = spec.model_dump(mode="json")
+    else:
+        data = dict(spec or {})
+    data["dataset"] = dataset
+    try:
+        return Spec.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = "spec." + ".".join(str(p) for p in err.get("loc", ())) if err.get("loc") else "spec"
+        code = "spec_unknown_field" if err.get("type") == "extra_forbidden" else "spec_invalid"
+        raise SpecError(f"{field}: {err.get('msg')}", code=code, field=field) from exc
+
+
+def _analysis_from(data: dict):
+    from dancegraph.music.analysis import MusicAnalysis
+
+    if not isinstance(data, dict):
+        raise DanceGraphError(
+            "analysis must be a JSON object", code="analysis_invalid", field="analysis"
+        )
+    try:
+        analysis = MusicAnalysis.from_dict(data)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise _analysis_error(
+            f"analysis is not a MusicAnalysis.to_dict() result ({exc!r})"
+        ) from exc
+    bars = np.asarray(analysis.bars, dtype=float)
+    if bars.ndim != 2 or bars.shape[1] != 2 or not np.all(np.isfinite(bars)):
+        raise _analysis_error("analysis.bars must be (B, 2) finite start/end seconds")
+    if bars.shape[0] and np.any(bars[:, 1] <= bars[:, 0]):
+        raise _analysis_error("analysis.bars: every bar must end after it starts")
+    return analysis
+
+
+def _analysis_error(message: str) -> DanceGraphError:
+    err = DanceGraphError(message, code="analysis_invalid", field="analysis")
+    err.status = 422
+    return err
+
+
+class LocalGraphStore(GraphStoreClient):
+    """Graphs loaded in this process from ``store`` (memory-mapped), reloaded when a build lands.
+
+    Each call checks ``graphs/<name>/current``; a new version is loaded beside the old one, which
+    keeps answering the calls already holding it.
+    """
+
+    def __init__(self, store: ObjectStore):
+        self.store = store
+        self._graphs: dict[str, artifact.MotionGraph] = {}
+        self._lock = threading.Lock()
+
+    def graph(self, name: str) -> artifact.MotionGraph:
+        """The current graph of dataset ``name``; NotFoundError(code='unknown_dataset') if none."""
+        version = artifact.current_version(self.store, name)
+        with self._lock:
+            cached = self._graphs.get(name)
+            if cached is not None and cached.version == version:
+                return cached
+        loaded = artifact.load_graph(self.store.path(artifact.graph_key(name, version)))
+        with self._lock:
+            self._graphs[name] = loaded
+        return loaded
+
+    def graph_version(self, name: str, version: str) -> artifact.MotionGraph:
+        """A given version of ``name``'s graph (e.g. the one a search answered from)."""
+        with self._lock:
+            cached = self._graphs.get(name)
+        if cached is not None and cached.version == version:
+            return cached
+        try:
+            key = artifact.graph_key(name, version)
+            return artifact.load_graph(self.store.path(key))
+        except (ValueError, NotFoundError) as exc:
+            raise NotFoundError(
+                f"dataset {name!r} has no graph version {version!r}",
+                code="unknown_graph_version",
+                field="version",
+            ) from exc
+
+    def loaded(self) -> dict[str, str]:
+        with self._lock:
+            return {name: g.version for name, g in self._graphs.items()}
+
+    def list_graphs(self) -> list[dict]:
+        out = []
+        for name in artifact.list_graphs(self.store):
+            try:
+                out.append(_summary(self.graph(name)))
+            except DanceGraphError:
+                continue  # a broken build is left out of the list, not a failure of the list
+        return out
+
+    def graph_info(self, name: str) -> dict:
+        graph = self.graph(name)
+        info = _summary(graph)
+        manifest = graph.manifest
+        info.update(
+            {
+                "stats": graph.stats(),
+                "created": manifest.get("created"),
+                "params": manifest.get("params", {}),
+                "embedding_details": {
+                    k: v for k, v in (manifest.get("embedding") or {}).items() if k != "dance_stats"
+                },
+                "dataset": manifest.get("dataset", {}),
+                "tags": graph.tags,
+                "clips": len(graph.clips),
+                "skeleton": {"joints": graph.skeleton.n_joints, "root": graph.skeleton.names[0]},
+                "motifs": (manifest.get("motifs") or {}).get("k"),
+                "versions": artifact.list_versions(self.store, name),
+            }
+        )
+        return info
+
+    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
+        from dancegraph.graph.search import search
+
+        graph = self.graph(dataset)
+        parsed_spec = parse_spec(dataset, spec)
+        parsed_analysis = _analysis_from(analysis)
+        result = search(graph, parsed_analysis, parsed_spec).to_dict()
+        result["graph"] = {"name": graph.name, "version": graph.version}
+        return result
+
+    def _node_index(self, graph: artifact.MotionGraph, node_id: str) -> int:
+        try:
+            return graph.node_index(node_id)
+        except KeyError:
+            raise NotFoundError(
+                f"dataset {graph.name!r} has no node {node_id!r}",
+                code="unknown_node",
+                field="node_id",
+            ) from None
+
+    def node(self, dataset: str, node_id: str) -> dict:
+        graph = self.graph(dataset)
+        return node_provenance(graph, self._node_index(graph, node_id))
+
+    def skeleton(self, dataset: str) -> Skeleton:
+        return self.graph(dataset).skeleton
+
+    def node_motion(self, dataset: str, node_id: str) -> Motion:
+        graph = self.graph(dataset)
+        return graph.node_motion(self._node_index(graph, node_id))
+
+
+def _summary(graph: artifact.MotionGraph) -> dict:
+    manifest = graph.manifest
+    dataset = manifest.get("dataset") or {}
+    embedding = manifest.get("embedding") or {}
+    return {
+        "name": graph.name,
+        "version": graph.version,
+        "graph_key": artifact.graph_key(graph.name, graph.version),
+        "nodes": graph.n_nodes,
+        "edges": graph.n_edges,
+        "embedding": embedding.get("version", "unknown"),
+        "dataset_version": dataset.get("version"),
+        "licence": dataset.get("licence"),
+    }
+
+
+def node_provenance(graph: artifact.MotionGraph, i: int) -> dict:
+    """Where node ``i`` comes from: take, bar, source frame range, augmentation kind and sources."""
+    info = graph.node_info(i) if _bar_frames_ok(graph) else _node_info_fallback(graph, i)
+    frames = _bar_frames(graph, info["clip"], info["bar"])
+    if frames is not None:
+        info["frames"] = frames
+    info["augmentation"] = None if info["kind"] == "original" else info["kind"]
+    return info
+
+
+def _bar_frames_ok(graph: artifact.MotionGraph) -> bool:
+    # node_info indexes manifest["bar_frames"][clip] by an int bar; JSON turns those keys into
+    # strings, so only trust it when they are not dict keys.
+    frames = graph.manifest.get("bar_frames") or {}
+    return all(not isinstance(v, dict) for v in frames.values())
+
+
+def _node_info_fallback(graph: artifact.MotionGraph, i: int) -> dict:
+    clip = graph.clips[int(graph.node_clip[i])]
+    src = [int(s) for s in graph.node_source[i] if s >= 0]
+    tags = [t for k, t in enumerate(graph.tags) if int(graph.node_tags[i]) >> k & 1]
+    return {
+        "node": graph.node_ids[i],
+        "clip": clip,
+        "bar": int(graph.node_bar[i]),
+        "kind": artifact.KINDS[int(graph.node_kind[i])],
+        "tags": tags,
+        "sources": [graph.node_ids[s] for s in src],
+        "motif": int(graph.motif[i]),
+        "duration_s": float(graph.duration[i]),
+    }
+
+
+def _bar_frames(graph: artifact.MotionGraph, clip: str, bar: int) -> list[int] | None:
+    """``[start, end)`` frames of ``clip``'s bar ``bar`` in its source take, if recorded."""
+    table = (graph.manifest.get("bar_frames") or {}).get(clip)
+    if table is None:
+        return None
+    if isinstance(table, dict):
+        entry = table.get(str(bar), table.get(bar))
+    else:
+        entry = table[bar] if 0 <= bar < len(table) else None
+    return [int(x) for x in entry] if entry is not None else None
+
+
+class HttpGraphStore(GraphStoreClient):
+    """The graph-store service over HTTP (``services.graphstore.app``)."""
+
+    def __init__(self, base_url: str, *, timeout_s: float = 120.0, client=None):
+        import httpx
+
+        self.base_url = base_url.rstrip("/")
+        self._client = client or httpx.Client(base_url=self.base_url, timeout=timeout_s)
+        self._skeletons: dict[str, Skeleton] = {}
+
+    def close(self) -> None:
+        self._client.close()
+
+    def _call(self, method: str, path: str, **kwargs) -> dict:
+        import httpx
+
+        try:
+            resp = self._client.request(method, path, **kwargs)
+        except httpx.HTTPError as exc:
+            err = DanceGraphError(
+                f"graph store at {self.base_url} unreachable: {exc}", code="graphstore_unavailable"
+            )
+            err.status = 503
+            raise err from exc
+        if resp.status_code >= 400:
+            raise _error_from_problem(resp)
+        return resp.json()
+
+    def list_graphs(self) -> list[dict]:
+        return self._call("GET", "/v1/graphs")["items"]
+
+    def graph_info(self, name: str) -> dict:
+        return self._call("GET", f"/v1/graphs/{name}")
+
+    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
+        return self._call(
+            "POST", f"/v1/graphs/{dataset}/search", json={"analysis": analysis, "spec": spec}
+        )
+
+    def node(self, dataset: str, node_id: str) -> dict:
+        return self._call("GET", f"/v1/graphs/{dataset}/nodes/{node_id}")
+
+    def skeleton(self, dataset: str) -> Skeleton:
+        if dataset not in self._skeletons:
+            self._skeletons[dataset] = Skeleton.from_dict(
+                self._call("GET", f"/v1/graphs/{dataset}/skeleton")
+            )
+        return self._skeletons[dataset]
+
+    def node_motion(self, dataset: str, node_id: str) -> Motion:
+        data = self._call("GET", f"/v1/graphs/{dataset}/nodes/{node_id}/motion")
+        return Motion(
+            skeleton=self.skeleton(dataset),
+            fps=float(data["fps"]),
+            root_positions=np.asarray(data["root_positions"], dtype=float),
+            rotations=np.asarray(data["rotations"], dtype=float),
+        )
+
+
+def _error_from_problem(resp) -> DanceGraphError:
+    """The DanceGraphError a problem+json answer stands for (same code, field and status)."""
+    try:
+        body = resp.json()
+    except ValueError:
+        body = {}
+    code = body.get("code") or f"http_{resp.status_code}"
+    message = body.get("detail") or resp.text[:500] or f"HTTP {resp.status_code}"
+    field = body.get("field")
+    if resp.status_code == 404:
+        err: DanceGraphError = NotFoundError(message, code=code, field=field)
+    elif code.startswith("spec_") or code == "constraint_conflict":
+        err = SpecError(message, code=code, field=field)
+    else:
+        err = DanceGraphError(message, code=code, field=field)
+    err.status = resp.status_code
+    return err

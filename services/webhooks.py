@@ -1,0 +1,222 @@
+"""Completion webhooks: a signed POST to the job's ``callback_url``, retried with backoff.
+
+Wire format (documented in docs/tasks.md):
+
+- body: JSON ``{"event": "job.succeeded", "job": {...job status...}, "sent_at": ISO-8601}``,
+  serialised once; the exact bytes sent are the bytes signed;
+- ``X-DanceGraph-Signature: sha256=<hex HMAC-SHA256 of the body with the webhook secret>``;
+- ``X-DanceGraph-Event`` (the event name) and ``X-DanceGraph-Delivery`` (one id per delivery,
+  the same across its retries, so a receiver can drop duplicates).
+
+A delivery succeeds on any 2xx answer. Connection errors, timeouts, 408, 429 and 5xx are
+retried with exponential backoff (``base_delay · 2^n``, capped at ``max_delay``) up to
+``attempts`` tries in all; any other status is final (the receiver said no).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+import httpx
+
+log = logging.getLogger("dancegraph.webhooks")
+
+SIGNATURE_HEADER = "X-DanceGraph-Signature"
+EVENT_HEADER = "X-DanceGraph-Event"
+DELIVERY_HEADER = "X-DanceGraph-Delivery"
+_RETRY_STATUSES = {408, 429}
+
+
+def sign(body: bytes, secret: str) -> str:
+    """The signature header value for ``body``: ``sha256=<hex digest>``."""
+    digest = hmac.new(secret.encode("utf-8"), body, hashlib.sha256).hexdigest()
+    return f"sha256={digest}"
+
+
+def verify(body: bytes, signature: str, secret: str) -> bool:
+    """True when ``signature`` (the header value) matches ``body`` under ``secret``."""
+    return hmac.compare_digest(sign(body, secret), signature or "")
+
+
+def encode_payload(event: str, job: dict) -> bytes:
+    """The body bytes of one webhook (stable key order, UTF-8 JSON)."""
+    body = {"event": event, "job": job, "sent_at": datetime.now(UTC).isoformat()}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), default=str).encode("utf-8")
+
+
+def backoff_delay(attempt: int, base_delay: float, max_delay: float) -> float:
+    """Seconds to wait after failed try number ``attempt`` (0-based): base·2^attempt, capped."""
+    return min(max_delay, base_delay * (2**attempt))
+
+
+@dataclass
+class DeliveryResult:
+    """What happened to one delivery: ``ok``, the tries made, and the last status or error."""
+
+    ok: bool
+    attempts: int
+    status_code: int | None = None
+    error: str | None = None
+    delivery_id: str = ""
+    retryable: bool = False  # the last failure was transient (a later try may succeed)
+    history: list[str] = field(default_factory=list)
+
+
+def _retryable(status: int) -> bool:
+    return status >= 500 or status in _RETRY_STATUSES
+
+
+def deliver(
+    url: str,
+    body: bytes,
+    secret: str,
+    *,
+    event: str = "job.succeeded",
+    attempts: int = 5,
+    base_delay: float = 1.0,
+    max_delay: float = 60.0,
+    timeout: float = 10.0,
+    delivery_id: str | None = None,
+    sleep: Callable[[float], None] = time.sleep,
+) -> DeliveryResult:
+    """POST ``body`` to ``url`` signed with ``secret``; retry transient failures, bounded.
+
+    Never raises for delivery problems: the outcome is in the returned DeliveryResult (a job's
+    result does not depend on whether its webhook got through).
+    """
+    delivery_id = delivery_id or str(uuid.uuid4())
+    headers = {
+        "Content-Type": "application/json",
+        "User-Agent": "dancegraph-webhook/1",
+        SIGNATURE_HEADER: sign(body, secret),
+        EVENT_HEADER: event,
+        DELIVERY_HEADER: delivery_id,
+    }
+    result = DeliveryResult(ok=False, attempts=0, delivery_id=delivery_id)
+    with httpx.Client(timeout=timeout, follow_redirects=False) as client:
+        for attempt in range(max(1, attempts)):
+            result.attempts = attempt + 1
+            try:
+                response = client.post(url, content=body, headers=headers)
+            except httpx.HTTPError as exc:
+                result.status_code, result.error = None, f"{type(exc).__name__}: {exc}"
+                retry = True
+            else:
+                result.status_code, result.error = response.status_code, None
+                if 200 <= response.status_code < 300:
+                    result.ok, result.retryable = True, False
+                    result.history.append(str(response.status_code))
+                    break
+                result.error = f"HTTP {response.status_code}"
+                retry = _retryable(response.status_code)
+            result.retryable = retry
+            result.history.append(result.error or "")
+            log.warning(
+                "webhook attempt failed",
+                extra={"url": url, "attempt": attempt + 1, "error": result.error, "retry": retry},
+            )
+            if not retry or attempt + 1 >= attempts:
+                break
+            sleep(backoff_delay(attempt, base_delay, max_delay))
+    return result
+
+
+# --- jobs -----------------------------------------------------------------------------------
+
+
+def job_payload(job) -> dict:
+    """The ``job`` object of a webhook body: the job's final state, as GET /v1/jobs/{id} shows it."""
+    result = job.result or {}
+    alternatives = [
+        {"index": k, "cost": alt.get("cost")}
+        for k, alt in enumerate(result.get("alternatives", []))
+    ]
+    out = {
+        "id": job.id,
+        "status": job.status,
+        "stage": job.stage,
+        "progress": job.progress,
+        "batch_id": job.batch_id,
+        "alternatives": alternatives,
+        "files": result.get("files", []),
+        "url": f"/v1/jobs/{job.id}",
+        "finished_at": job.finished_at.isoformat() if job.finished_at else None,
+    }
+    if job.error_code:
+        out["error"] = {
+            "code": job.error_code,
+            "message": job.error_message,
+            "field": job.error_field,
+        }
+    return out
+
+
+def deliver_job_webhook(
+    job_id: str, *, delivery_id: str, final_attempt: bool
+) -> DeliveryResult | None:
+    """POST one try of a job's completion webhook and record it on the job row.
+
+    Returns None when there is nothing to send (no callback URL, job not final, or already
+    delivered/failed). ``final_attempt``: a failure now marks the webhook ``failed`` for good.
+    """
+    from sqlalchemy import update
+
+    from services.config import get_settings
+    from services.db import session_scope
+    from services.models import (
+        FINAL_STATUSES,
+        WEBHOOK_DELIVERED,
+        WEBHOOK_FAILED,
+        WEBHOOK_PENDING,
+        Job,
+        utcnow,
+    )
+
+    settings = get_settings()
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        if job is None or not job.callback_url or job.status not in FINAL_STATUSES:
+            return None
+        if job.webhook_status != WEBHOOK_PENDING:
+            return None
+        url, body = job.callback_url, encode_payload(f"job.{job.status}", job_payload(job))
+        event = f"job.{job.status}"
+    result = deliver(
+        url,
+        body,
+        settings.webhook_secret,
+        event=event,
+        attempts=1,
+        timeout=settings.webhook_timeout_s,
+        delivery_id=delivery_id,
+    )
+    values = {"webhook_attempts": Job.webhook_attempts + 1, "webhook_last_error": result.error}
+    if result.ok:
+        values.update(webhook_status=WEBHOOK_DELIVERED, webhook_delivered_at=utcnow())
+    elif final_attempt or not result.retryable:
+        values.update(webhook_status=WEBHOOK_FAILED)
+    with session_scope() as session:
+        session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.webhook_status == WEBHOOK_PENDING)
+            .values(**values)
+            .execution_options(synchronize_session=False)
+        )
+    log.info(
+        "webhook attempt",
+        extra={
+            "job_id": job_id,
+            "ok": result.ok,
+            "status_code": result.status_code,
+            "error": result.error,
+        },
+    )
+    return result

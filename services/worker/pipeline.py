@@ -1,0 +1,317 @@
+"""The job pipeline behind the Celery tasks: analyze → search → render → (FBX) → finalize.
+
+Each stage is idempotent and leaves nothing half-written:
+
+- analyze: cached by the upload's sha256 at ``analysis/<sha256>.json`` (the same song is analysed
+  once, whoever asked); written atomically by the object store.
+- search: asks the graph store (``services.graphstore.client``: in-process in the embedded
+  default, over HTTP in production); its answer is kept with the rendered files.
+- render: writes into a private temporary folder ``<store>/tmp/job-<id>-<random>/`` and renames
+  it to ``jobs/<job_id>/`` in one step; ``jobs/<job_id>/timeline.json`` existing means the render
+  is complete, so a re-run skips it.
+- FBX: each ``alternatives/<k>.fbx`` is written to a ``.tmp-`` sibling and renamed into place.
+- finalize: the job row becomes ``succeeded`` with the alternatives and their costs (a
+  conditional update: a cancelled or already-finished job is never overwritten).
+
+Progress (stage, percent) goes to the job row as the stages pass.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+from dancegraph.errors import DanceGraphError
+from dancegraph.spec import Spec
+from dancegraph.store import ObjectStore
+from services import jobs
+from services.config import Settings, get_settings
+from services.db import session_scope
+from services.models import SUCCEEDED
+from services.worker import state
+
+log = logging.getLogger("dancegraph.worker")
+
+# Stage names and the percent reached when each one starts (shown by GET /v1/jobs/{id}).
+STAGES = {
+    "analyze": 5.0,
+    "search": 40.0,
+    "render": 60.0,
+    "fbx_queued": 80.0,
+    "fbx": 82.0,
+    "finalize": 98.0,
+}
+TIMELINE = "timeline.json"
+SEARCH_FILE = "search.json"
+
+
+@lru_cache(maxsize=4)
+def _store(root: str) -> ObjectStore:
+    return ObjectStore(root)
+
+
+def object_store(settings: Settings | None = None) -> ObjectStore:
+    return _store((settings or get_settings()).store_root)
+
+
+def analysis_key(audio_sha256: str) -> str:
+    """Object-store key of the cached analysis of the song with this sha256."""
+    return f"analysis/{audio_sha256}.json"
+
+
+# --- stages ---------------------------------------------------------------------------------
+
+
+def analyze(store: ObjectStore, audio_key: str, audio_sha256: str) -> dict:
+    """The song's analysis (``MusicAnalysis.to_dict()``), computed once per sha256 and cached."""
+    key = analysis_key(audio_sha256)
+    if store.exists(key):
+        return json.loads(store.get_bytes(key))
+    from dancegraph.music.analysis import analyze as analyze_music
+
+    analysis = analyze_music(str(store.path(audio_key)))
+    data = analysis.to_dict()
+    store.put_bytes(key, json.dumps(data).encode("utf-8"))
+    return data
+
+
+def analysis_summary(data: dict) -> dict:
+    """The short analysis summary the job status carries."""
+    from dancegraph.music.analysis import MusicAnalysis
+
+    return MusicAnalysis.from_dict(data).summary()
+
+
+def search(settings: Settings, store: ObjectStore, spec: dict, analysis: dict) -> dict:
+    """Graph search through the graph-store client (``SearchResult.to_dict()``)."""
+    client = graphstore_client(settings)
+    return client.search(spec.get("dataset", Spec().dataset), analysis, spec)
+
+
+def graphstore_client(settings: Settings):
+    """LocalGraphStore (in-process) when ``graphstore_url`` is 'local', else HttpGraphStore."""
+    return _graphstore_client(settings.graphstore_url, settings.store_root)
+
+
+@lru_cache(maxsize=4)
+def _graphstore_client(url: str, store_root: str):
+    from services.graphstore.client import HttpGraphStore, LocalGraphStore
+
+    if url == "local":
+        return LocalGraphStore(_store(store_root))
+    return HttpGraphStore(url)
+
+
+def load_graph(store: ObjectStore, name: str, version: str | None = None):
+    """A graph artifact of the dataset (default: its current version), memory-mapped, cached
+    per process and version; render uses the version the search answered from."""
+    from dancegraph.graph.artifact import current_version
+
+    return _load_graph(str(store.root), name, version or current_version(store, name))
+
+
+@lru_cache(maxsize=8)
+def _load_graph(store_root: str, name: str, version: str):
+    from dancegraph.graph.artifact import graph_key
+    from dancegraph.graph.artifact import load_graph as load_artifact
+
+    return load_artifact(_store(store_root).path(graph_key(name, version)))
+
+
+def render(
+    settings: Settings, store: ObjectStore, job_id: str, spec: dict, analysis: dict, found: dict
+) -> list[str]:
+    """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
+
+    FBX is not written here: it is the ``fbx`` queue's work (a warm Blender per worker).
+    """
+    final = store.path(jobs.result_key(job_id))
+    if (final / TIMELINE).is_file():
+        return list_result_files(store, job_id)
+    from dancegraph.music.analysis import MusicAnalysis
+    from dancegraph.render import render as render_motion
+
+    bvh_spec = Spec.model_validate(spec)
+    bvh_spec = bvh_spec.model_copy(
+        update={"output": bvh_spec.output.model_copy(update={"formats": ["bvh"]})}
+    )
+    graph = load_graph(store, bvh_spec.dataset, (found.get("graph") or {}).get("version"))
+    tmp = store.root / "tmp" / f"job-{job_id}-{uuid.uuid4().hex}"
+    tmp.mkdir(parents=True)
+    try:
+        render_motion(
+            graph,
+            MusicAnalysis.from_dict(analysis),
+            found,
+            bvh_spec,
+            tmp,
+        )
+        (tmp / SEARCH_FILE).write_text(json.dumps(found))
+        publish_folder(tmp, final, marker=TIMELINE)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return list_result_files(store, job_id)
+
+
+def publish_folder(tmp: Path, final: Path, *, marker: str) -> None:
+    """Move a finished folder into place so readers see all of it or none of it.
+
+    One ``rename`` when ``final`` does not exist yet; otherwise entry by entry with ``marker``
+    (the file whose presence means "complete") moved last. When ``final`` already holds the
+    marker, another worker finished first and ``tmp`` is left for the caller to discard.
+    """
+    final.parent.mkdir(parents=True, exist_ok=True)
+    if (final / marker).exists():
+        return
+    try:
+        os.rename(tmp, final)
+        return
+    except OSError:
+        if not final.is_dir():
+            raise
+    entries = sorted(tmp.iterdir(), key=lambda p: p.name == marker)
+    for entry in entries:
+        target = final / entry.name
+        if entry.is_dir() and target.is_dir():
+            for child in entry.iterdir():
+                os.replace(child, target / child.name)
+        else:
+            if target.is_dir():
+                shutil.rmtree(target)
+            os.replace(entry, target)
+
+
+def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
+    """Result files of a job, relative to ``jobs/<job_id>/`` (temporary files excluded)."""
+    prefix = jobs.result_key(job_id)
+    return [key[len(prefix) + 1 :] for key in store.list(prefix)]
+
+
+def bvh_files(store: ObjectStore, job_id: str) -> list[Path]:
+    folder = store.path(jobs.result_key(job_id, "alternatives"))
+    return sorted(folder.glob("*.bvh"), key=lambda p: p.name)
+
+
+def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None) -> list[str]:
+    """Write ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there)."""
+    from services.worker import fbx_export
+
+    for i, bvh in enumerate(bvh_files(store, job_id)):
+        fbx = bvh.with_suffix(".fbx")
+        if fbx.exists():
+            continue
+        tmp = bvh.with_name(f".tmp-{uuid.uuid4().hex}-{fbx.name}")
+        try:
+            fbx_export.export(bvh, tmp, fps=fps)
+            os.replace(tmp, fbx)
+        finally:
+            tmp.unlink(missing_ok=True)
+        if on_file is not None:
+            on_file(i)
+    return list_result_files(store, job_id)
+
+
+def wants_fbx(spec: dict) -> bool:
+    return "fbx" in Spec.model_validate(spec).output.formats
+
+
+def finalize(store: ObjectStore, job_id: str) -> bool:
+    """Mark the job succeeded with its alternatives, costs and files; False if already final."""
+    found = json.loads(store.get_bytes(jobs.result_key(job_id, SEARCH_FILE)))
+    result = dict(found)
+    result["files"] = [f for f in list_result_files(store, job_id) if f != SEARCH_FILE]
+    with session_scope() as session:
+        ok = jobs.set_status(
+            session, job_id, SUCCEEDED, stage="done", progress=100.0, result=result
+        )
+    if ok:
+        log.info("job succeeded", extra={"job_id": job_id, "files": len(result["files"])})
+    return ok
+
+
+def fail(job_id: str, exc: DanceGraphError) -> bool:
+    """A named failure (the error's stable code) — the user's input, not the machine, is at fault."""
+    with session_scope() as session:
+        return jobs.fail_job(session, job_id, exc.code, exc.message, exc.field)
+
+
+@dataclass
+class RunOutcome:
+    """What ``run_job`` did: 'skipped' (not ours / final), 'succeeded', 'fbx_queued'."""
+
+    status: str
+    files: list[str] | None = None
+
+
+def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
+    """Claim and run the analysis-queue part of a job (raises on failure; the task decides)."""
+    settings = settings or get_settings()
+    store = object_store(settings)
+    job = state.claim(job_id, stale_after_s=settings.job_timeout_s)
+    if job is None:
+        log.info("not claimed (final, or held by a live worker)", extra={"job_id": job_id})
+        return RunOutcome("skipped")
+    interval = state.heartbeat_interval(settings.job_timeout_s)
+    with state.Heartbeat(job_id, interval) as beat:
+        state.progress(job_id, "analyze", STAGES["analyze"])
+        analysis = analyze(store, job.audio_key, job.audio_sha256)
+        beat.check()
+        with session_scope() as session:
+            _set_summary(session, job_id, analysis)
+        state.progress(job_id, "search", STAGES["search"])
+        found = search(settings, store, job.spec, analysis)
+        beat.check()
+        state.progress(job_id, "render", STAGES["render"])
+        files = render(settings, store, job_id, job.spec, analysis, found)
+        beat.check()
+        if wants_fbx(job.spec) and not all(
+            p.with_suffix(".fbx").exists() for p in bvh_files(store, job_id)
+        ):
+            state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
+            return RunOutcome("fbx_queued", files)
+        state.progress(job_id, "finalize", STAGES["finalize"])
+    finalize(store, job_id)
+    return RunOutcome("succeeded", files)
+
+
+def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
+    """Claim the FBX stage of a job (handed over by ``run_job``), export, finalize."""
+    settings = settings or get_settings()
+    store = object_store(settings)
+    job = state.claim(job_id, stale_after_s=settings.job_timeout_s, stages=("fbx_queued",))
+    if job is None:
+        return RunOutcome("skipped")
+    interval = state.heartbeat_interval(settings.job_timeout_s)
+    with state.Heartbeat(job_id, interval) as beat:
+        state.progress(job_id, "fbx", STAGES["fbx"])
+        n = max(1, len(bvh_files(store, job_id)))
+        span = STAGES["finalize"] - STAGES["fbx"]
+
+        def on_file(i: int) -> None:
+            beat.check()
+            state.progress(job_id, "fbx", STAGES["fbx"] + span * (i + 1) / n)
+
+        fps = float(Spec.model_validate(job.spec).output.fps)
+        files = export_fbx(store, job_id, fps, on_file)
+        state.progress(job_id, "finalize", STAGES["finalize"])
+    finalize(store, job_id)
+    return RunOutcome("succeeded", files)
+
+
+def _set_summary(session, job_id: str, analysis: dict) -> None:
+    from sqlalchemy import update
+
+    from services.models import Job
+
+    session.execute(
+        update(Job)
+        .where(Job.id == job_id)
+        .values(analysis_summary=analysis_summary(analysis))
+        .execution_options(synchronize_session=False)
+    )

@@ -1,0 +1,188 @@
+"""The reaper: the job row is the source of truth, the queue only a hint.
+
+One sweep (``reap_once``):
+1. ``running`` jobs whose heartbeat is older than ``Settings.job_timeout_s`` (their worker died:
+   SIGKILL, OOM, a lost machine) go back to ``queued`` and are re-enqueued — or fail with
+   ``worker_lost`` once they have used ``Settings.job_max_attempts`` tries.
+2. ``queued`` jobs untouched for ``job_timeout_s`` are enqueued again when the broker holds fewer
+   messages than there are such jobs: their messages are gone (Redis restarted without
+   persistence). A duplicate message is harmless: ``state.claim`` lets only one worker run a job.
+   Jobs rendered and waiting in the ``fbx`` queue (stage ``fbx_queued``) are not stuck: their
+   FBX task is re-sent only when the ``fbx`` queue holds fewer messages than such jobs.
+3. final jobs whose webhook is still ``pending`` long after they finished get their webhook
+   queued again (its task was lost).
+4. temporary render folders older than ``2 × job_timeout_s`` (left by killed workers) are removed.
+
+Run it as ``dancegraph reaper`` (a loop), as the Celery beat task ``dancegraph.reap``, or inside
+``dancegraph serve --embedded``.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import timedelta
+
+from sqlalchemy import select, update
+
+from services import jobs
+from services.config import QUEUE_ANALYSIS, QUEUE_FBX, Settings, get_settings
+from services.db import session_scope
+from services.models import FINAL_STATUSES, QUEUED, WEBHOOK_PENDING, Job, utcnow
+from services.worker import enqueue, pipeline
+
+log = logging.getLogger("dancegraph.reaper")
+
+WEBHOOK_GRACE_S = 600.0  # a webhook still pending this long after the job ended was lost
+
+
+@dataclass
+class ReapReport:
+    """Job ids acted on in one sweep."""
+
+    requeued: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    reenqueued: list[str] = field(default_factory=list)
+    webhooks: list[str] = field(default_factory=list)
+    fbx_resent: list[str] = field(default_factory=list)
+    tmp_removed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def __bool__(self) -> bool:
+        return bool(
+            self.requeued
+            or self.failed
+            or self.reenqueued
+            or self.webhooks
+            or self.fbx_resent
+            or self.tmp_removed
+        )
+
+
+def reap_once(
+    settings: Settings | None = None, *, webhook_grace_s: float = WEBHOOK_GRACE_S
+) -> ReapReport:
+    """One sweep over the jobs table (see the module docstring)."""
+    settings = settings or get_settings()
+    report = ReapReport()
+    now = utcnow()
+    timeout = timedelta(seconds=settings.job_timeout_s)
+
+    with session_scope() as session:
+        stuck = jobs.stuck_jobs(session, settings.job_timeout_s, now=now)
+        # Rendered jobs waiting for the fbx queue have no heartbeat while they wait: a long FBX
+        # backlog is not a dead worker. Re-send their FBX task only if the queue lost messages.
+        waiting_fbx = [j.id for j in stuck if j.stage == "fbx_queued"]
+        stuck = [j for j in stuck if j.stage != "fbx_queued"]
+        if waiting_fbx:
+            held = enqueue.queue_size(QUEUE_FBX)
+            if held is None or held < len(waiting_fbx):
+                report.fbx_resent = waiting_fbx
+            session.execute(
+                update(Job)
+                .where(Job.id.in_(waiting_fbx), Job.stage == "fbx_queued")
+                .values(heartbeat_at=now)
+                .execution_options(synchronize_session=False)
+            )
+        for job in stuck:
+            if job.attempts >= settings.job_max_attempts:
+                jobs.fail_job(
+                    session,
+                    job.id,
+                    "worker_lost",
+                    f"the job's worker stopped responding {job.attempts} times",
+                )
+                report.failed.append(job.id)
+            elif jobs.requeue_job(session, job.id):
+                report.requeued.append(job.id)
+        waiting = list(
+            session.scalars(
+                select(Job.id).where(Job.status == QUEUED, Job.updated_at < now - timeout)
+            )
+        )
+        if waiting:
+            # A backlog longer than the timeout is not a loss: re-send only when the broker holds
+            # fewer messages than there are waiting jobs (None: unknown, re-send).
+            held = enqueue.queue_size(QUEUE_ANALYSIS)
+            if held is not None and held >= len(waiting):
+                waiting = []
+        for job_id in waiting:
+            res = session.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.status == QUEUED)
+                .values(stage="requeued", updated_at=now)
+                .execution_options(synchronize_session=False)
+            )
+            if res.rowcount == 1:
+                report.reenqueued.append(job_id)
+        lost_hooks = list(
+            session.scalars(
+                select(Job.id).where(
+                    Job.status.in_(FINAL_STATUSES),
+                    Job.webhook_status == WEBHOOK_PENDING,
+                    Job.finished_at < now - timedelta(seconds=webhook_grace_s),
+                )
+            )
+        )
+        if lost_hooks:
+            # Restart the clock so the next sweep does not send it again.
+            session.execute(
+                update(Job)
+                .where(Job.id.in_(lost_hooks))
+                .values(finished_at=now)
+                .execution_options(synchronize_session=False)
+            )
+    # Enqueue after the commit, so a worker never sees the row before its new state.
+    for job_id in report.requeued + report.reenqueued:
+        enqueue.requeue_job(job_id)
+    for job_id in report.fbx_resent:
+        enqueue.enqueue_fbx(job_id)
+    for job_id in report.failed:
+        enqueue.enqueue_webhook_if_pending(job_id)
+    for job_id in lost_hooks:
+        if enqueue.enqueue_webhook(job_id):
+            report.webhooks.append(job_id)
+    report.tmp_removed = _remove_stale_tmp(settings, 2 * settings.job_timeout_s)
+    if report:
+        log.info("reaped", extra=report.to_dict())
+    return report
+
+
+def _remove_stale_tmp(settings: Settings, older_than_s: float) -> int:
+    tmp = pipeline.object_store(settings).root / "tmp"
+    if not tmp.is_dir():
+        return 0
+    limit = time.time() - older_than_s
+    removed = 0
+    for entry in tmp.glob("job-*"):
+        try:
+            if entry.stat().st_mtime < limit:
+                shutil.rmtree(entry, ignore_errors=True)
+                removed += 1
+        except FileNotFoundError:
+            continue
+    return removed
+
+
+def run_forever(
+    interval_s: float, stop: threading.Event | None = None, settings: Settings | None = None
+) -> None:
+    """Sweep every ``interval_s`` seconds until ``stop`` is set; a failed sweep is logged and retried."""
+    stop = stop or threading.Event()
+    while not stop.is_set():
+        try:
+            reap_once(settings)
+        except Exception:  # the database may be restarting; try again next round
+            log.exception("reaper sweep failed")
+        stop.wait(interval_s)
+
+
+def default_interval(settings: Settings | None = None) -> float:
+    """Sweep a few times per stuck timeout, at most every 60 s."""
+    settings = settings or get_settings()
+    return max(0.5, min(60.0, settings.job_timeout_s / 3.0))

@@ -1,0 +1,176 @@
+"""Celery tasks — thin shells over ``services.worker.pipeline`` (public names in docs/tasks.md).
+
+Failure policy, the same for every task:
+- ``DanceGraphError`` (the input's fault: bad audio, no beat, unknown dataset, impossible
+  constraint) → the job fails with the error's stable ``code``; no retry.
+- transient errors (database, broker or graph-store connection; a DanceGraphError with status
+  503 such as ``graphstore_unavailable``) → the job goes back to
+  ``queued`` and the task retries with exponential backoff, at most ``MAX_RETRIES`` times; then
+  the job fails with ``service_unavailable``.
+- the soft time limit → the job fails with ``job_timeout``; any other exception (a bug) → the
+  job fails with ``internal_error`` and the traceback is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+
+import httpx
+import kombu.exceptions
+import sqlalchemy.exc
+from celery.exceptions import SoftTimeLimitExceeded
+
+from dancegraph.errors import DanceGraphError
+from services import jobs, webhooks
+from services.config import get_settings
+from services.db import session_scope
+from services.worker import enqueue, logs, pipeline, state
+from services.worker.celery_app import (
+    TASK_DELIVER_WEBHOOK,
+    TASK_EXPORT_FBX,
+    TASK_REAP,
+    TASK_RUN_JOB,
+    TASK_SUBMIT,
+    app,
+)
+
+log = logging.getLogger("dancegraph.worker")
+
+MAX_RETRIES = 5
+RETRY_BASE_S = 2.0
+RETRY_MAX_S = 120.0
+
+TRANSIENT_ERRORS: tuple[type[BaseException], ...] = (
+    sqlalchemy.exc.OperationalError,
+    sqlalchemy.exc.InterfaceError,
+    sqlalchemy.exc.DisconnectionError,
+    httpx.TransportError,
+    kombu.exceptions.OperationalError,
+    ConnectionError,
+    TimeoutError,
+)
+
+
+def retry_delay(retries: int) -> float:
+    """Seconds before retry number ``retries`` (0-based): 2, 4, 8, … capped at 120."""
+    return min(RETRY_MAX_S, RETRY_BASE_S * (2**retries))
+
+
+def is_transient(exc: BaseException) -> bool:
+    """A failure of the machinery, not of the input: worth retrying later."""
+    if isinstance(exc, DanceGraphError):
+        # e.g. graphstore_unavailable: the graph store's client answers 503 for a lost connection
+        return getattr(exc, "status", 400) == 503
+    return isinstance(exc, TRANSIENT_ERRORS)
+
+
+def _run(task, job_id: str, step) -> None:
+    """Run one pipeline step for ``job_id`` under the failure policy above."""
+    with logs.job_context(job_id):
+        try:
+            outcome = step(job_id)
+        except state.JobCancelled:
+            log.info("job is no longer ours (cancelled or taken over); stopping")
+        except SoftTimeLimitExceeded:
+            log.warning("soft time limit exceeded")
+            pipeline.fail(
+                job_id, DanceGraphError("the job ran past its time limit", code="job_timeout")
+            )
+        except Exception as exc:
+            if is_transient(exc):
+                _retry_or_give_up(task, job_id, exc)
+            elif isinstance(exc, DanceGraphError):
+                log.info("job failed", extra={"error_code": exc.code, "error": exc.message})
+                pipeline.fail(job_id, exc)
+            else:
+                log.exception("internal error")
+                _fail_quietly(job_id, "internal_error", f"{type(exc).__name__}: {exc}")
+        else:
+            if outcome.status == "fbx_queued":
+                enqueue.enqueue_fbx(job_id)
+                return
+            if outcome.status == "skipped":
+                return
+        enqueue.enqueue_webhook_if_pending(job_id)
+
+
+def _retry_or_give_up(task, job_id: str, exc: Exception) -> None:
+    """Requeue the job and retry the task with backoff; fail it once the retries are spent."""
+    if task.request.retries >= MAX_RETRIES:
+        log.error("transient errors exhausted the retries", exc_info=True)
+        _fail_quietly(job_id, "service_unavailable", f"a service stayed unreachable: {exc}")
+        return
+    delay = retry_delay(task.request.retries)
+    log.warning("transient error; retrying", extra={"delay_s": delay, "error": str(exc)})
+    _requeue_quietly(job_id)
+    raise task.retry(countdown=delay, exc=exc, max_retries=MAX_RETRIES) from exc
+
+
+def _fail_quietly(job_id: str, code: str, message: str) -> None:
+    try:
+        with session_scope() as session:
+            jobs.fail_job(session, job_id, code, message)
+    except Exception:  # the reaper fails it later from the row
+        log.exception("could not record the failure")
+
+
+def _requeue_quietly(job_id: str) -> None:
+    try:
+        with session_scope() as session:
+            jobs.requeue_job(session, job_id)
+    except Exception:  # the row stays running; the reaper requeues it once its heartbeat is stale
+        log.warning("could not requeue before retry", exc_info=True)
+
+
+@app.task(name=TASK_RUN_JOB, bind=True, max_retries=MAX_RETRIES)
+def run_job(self, job_id: str) -> None:
+    """Analyze, search and render job ``job_id``; hand over to the fbx queue or finalize."""
+    _run(self, job_id, pipeline.run_job)
+
+
+@app.task(name=TASK_EXPORT_FBX, bind=True, max_retries=MAX_RETRIES)
+def export_fbx(self, job_id: str) -> None:
+    """Write the FBX files of a rendered job (the ``fbx`` queue) and finalize it."""
+    _run(self, job_id, pipeline.run_fbx)
+
+
+@app.task(name=TASK_DELIVER_WEBHOOK, bind=True, max_retries=None)
+def deliver_webhook(self, job_id: str, delivery_id: str | None = None, attempt: int = 0) -> None:
+    """One try of a job's completion webhook; retried with backoff while transient, bounded."""
+    settings = get_settings()
+    delivery_id = delivery_id or str(uuid.uuid4())
+    final = attempt + 1 >= settings.webhook_max_attempts
+    with logs.job_context(job_id):
+        result = webhooks.deliver_job_webhook(job_id, delivery_id=delivery_id, final_attempt=final)
+        if result is None or result.ok or final or not result.retryable:
+            return
+        delay = webhooks.backoff_delay(attempt, settings.webhook_backoff_s, 300.0)
+        raise self.retry(
+            countdown=delay,
+            kwargs={"job_id": job_id, "delivery_id": delivery_id, "attempt": attempt + 1},
+        )
+
+
+@app.task(name=TASK_SUBMIT, bind=True, max_retries=MAX_RETRIES)
+def submit(self, spec: dict, audio: str, tenant: str, **options) -> str | None:
+    """Public batch-pipeline entry: validate like the API, create the job, enqueue it.
+
+    See ``services.worker.submit.submit`` and docs/tasks.md for the arguments.
+    """
+    from services.worker import submit as submit_mod
+
+    try:
+        return submit_mod.submit(spec, audio, tenant, **options)
+    except Exception as exc:
+        if not is_transient(exc):
+            raise
+        raise self.retry(countdown=retry_delay(self.request.retries), exc=exc) from exc
+
+
+@app.task(name=TASK_REAP)
+def reap() -> dict:
+    """One sweep of the reaper (for Celery beat; ``dancegraph reaper`` runs the same in a loop)."""
+    from services.worker import reaper
+
+    return reaper.reap_once().to_dict()

@@ -1,0 +1,216 @@
+"""Graph build: nodes, augmentations, features and edges on the project's generated demo bars."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dancegraph.graph import artifact
+from dancegraph.graph.build import BuildParams, _lower_body, build_arrays, compute_edges, pair_cost
+
+
+def test_node_ids_kinds_and_tags(demo_bars, demo_build):
+    arrays, ids, manifest = demo_build
+    nb = len(demo_bars.signature)
+    kind = arrays["node_kind"]
+    assert (kind[:nb] == 0).all() and (kind[nb : 2 * nb] == 1).all()
+    assert ids[0] == "groove_100:0" and ids[nb] == "groove_100:0~m"
+    assert len(set(ids)) == len(ids)
+    tags = manifest["tags"]
+    aug_bit = 1 << tags.index("augmented")
+    assert ((arrays["node_tags"][kind > 0] & aug_bit) > 0).all()
+    assert ((arrays["node_tags"][kind == 0] & aug_bit) == 0).all()
+    for k, name in enumerate(artifact.KINDS):
+        bit = 1 << tags.index(name)
+        assert (((arrays["node_tags"] & bit) > 0) == (kind == k)).all()
+    for i, nid in enumerate(ids):
+        if kind[i] == 2:
+            assert "~b" in nid
+        if kind[i] == 3:
+            assert "~s" in nid
+    # blends and shuffles exist, are capped, and only join bars of one signature
+    for k, ratio in ((2, 0.25), (3, 0.25)):
+        assert 0 < (kind == k).sum() <= ratio * nb
+        src = arrays["node_source"][kind == k]
+        assert all(demo_bars.signature[a] == demo_bars.signature[b] for a, b in src)
+        assert all(demo_bars.clip[a] != demo_bars.clip[b] for a, b in src)
+    mirror_of = arrays["mirror_of"]
+    assert (mirror_of[mirror_of[:nb]] == np.arange(nb)).all()
+    assert (mirror_of[kind >= 2] == -1).all()
+
+
+def test_augmented_motion_comes_from_its_sources(demo_bars, demo_build):
+    arrays, ids, manifest = demo_build
+    lead = demo_bars.lead
+    kind = arrays["node_kind"]
+    rot = arrays["rotations"].astype(float)
+    root = arrays["root"]
+    lower = _lower_body(demo_bars.skeleton)
+    assert lower[0] and lower.sum() == 9  # hips + two legs of 4 joints
+    i = int(np.nonzero(kind == 2)[0][0])
+    a, b = arrays["node_source"][i]
+    src = demo_bars.rotations
+    assert np.allclose(rot[i][:, ~lower], src[a, lead:][:, ~lower], atol=2e-3)
+    assert np.allclose(rot[i][:, lower], src[b, lead:][:, lower], atol=2e-3)
+    assert np.allclose(root[i], demo_bars.root[b, lead:], atol=1e-5)
+    j = int(np.nonzero(kind == 3)[0][0])
+    a, b = arrays["node_source"][j]
+    half = rot.shape[1] // 2
+    assert np.allclose(rot[j][:half], src[a, lead : lead + half], atol=2e-3)
+    # the second half is bar b's, re-aligned at the seam: joint rotations below the root agree
+    assert np.allclose(rot[j][half + 4 :, 1:], src[b, lead + half + 4 :, 1:], atol=2e-3)
+    # mirror: the root path is reflected in x
+    nb = len(demo_bars.signature)
+    assert np.allclose(root[nb][:, 0], -root[0][:, 0], atol=1e-5)
+
+
+def test_edges_follow_threshold_and_keep_takes_linked(demo_bars, demo_build):
+    arrays, ids, manifest = demo_build
+    n = len(ids)
+    indptr, indices, costs = arrays["indptr"], arrays["indices"], arrays["costs"]
+    src = np.repeat(np.arange(n), np.diff(indptr))
+    assert (src != indices).all()  # no self loops
+    assert (
+        np.diff(indptr).min() >= 1 and np.bincount(indices, minlength=n).min() >= 1
+    )  # no dead ends
+    assert (
+        np.diff(indptr) <= BuildParams().max_out_degree + 2 * BuildParams().min_degree + 2
+    ).all()
+    # every consecutive pair of a take (and of its mirror) is linked at its true cost
+    blocks = manifest["feature_blocks"]
+    nb = len(demo_bars.signature)
+    edge = {(int(s), int(d)): float(c) for s, d, c in zip(src, indices, costs, strict=True)}
+    for i in range(nb - 1):
+        if demo_bars.clip[i] == demo_bars.clip[i + 1]:
+            for p, q in ((i, i + 1), (i + nb, i + 1 + nb)):
+                true = pair_cost(
+                    arrays["exit"][[p]],
+                    arrays["entry"][[q]],
+                    arrays["style"][[p]],
+                    arrays["style"][[q]],
+                    blocks,
+                    1.0,
+                    1.5,
+                )[0]
+                assert edge[(p, q)] == pytest.approx(true, rel=1e-4, abs=1e-4)
+    # the consecutive bars' pose term is ~0: the entry window is the frames before the bar
+    i = 0
+    t_d = pair_cost(
+        arrays["exit"][[i]],
+        arrays["entry"][[i + 1]],
+        arrays["style"][[0]],
+        arrays["style"][[0]],
+        blocks,
+        1.0,
+        0.0,
+    )[0]
+    assert t_d < 1e-3
+    forced = (
+        manifest["build"]["forced_out"]
+        + manifest["build"]["forced_in"]
+        + manifest["build"]["consecutive"]
+    )
+    assert (costs < 20.0).sum() >= len(costs) - 2 * forced
+
+
+def test_chunked_edges_match_brute_force(demo_build):
+    arrays, ids, manifest = demo_build
+    blocks = manifest["feature_blocks"]
+    entry, exit_, style = arrays["entry"], arrays["exit"], arrays["style"]
+    n = len(ids)
+    params = BuildParams(threshold=40.0, max_out_degree=n, chunk=7)
+    s1, d1, c1, _ = compute_edges(entry, exit_, style, blocks, params, np.zeros((0, 2), int))
+    p, q = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    full = pair_cost(
+        exit_[p.ravel()], entry[q.ravel()], style[p.ravel()], style[q.ravel()], blocks, 1.0, 1.5
+    ).reshape(n, n)
+    np.fill_diagonal(full, np.inf)
+    want = set(zip(*np.nonzero(full < 40.0), strict=True))
+    got = {(int(a), int(b)) for a, b, c in zip(s1, d1, c1, strict=True) if c < 40.0}
+    assert got == {(int(a), int(b)) for a, b in want}
+    assert np.allclose(c1[c1 < 40.0], full[s1[c1 < 40.0], d1[c1 < 40.0]], rtol=1e-3, atol=1e-3)
+
+
+def test_lower_threshold_gives_fewer_edges(demo_bars):
+    few, _, m1 = build_arrays(
+        demo_bars, BuildParams(threshold=8.0, mirror=False, blend_ratio=0, shuffle_ratio=0)
+    )
+    many, _, m2 = build_arrays(
+        demo_bars, BuildParams(threshold=60.0, mirror=False, blend_ratio=0, shuffle_ratio=0)
+    )
+    assert len(few["indices"]) < len(many["indices"])
+    assert m1["build"]["forced_out"] >= m2["build"]["forced_out"]
+
+
+def test_bad_params_are_rejected():
+    with pytest.raises(ValueError, match="frames_per_bar"):
+        BuildParams(frames_per_bar=30)
+    with pytest.raises(ValueError, match="threshold"):
+        BuildParams(threshold=0)
+
+
+@pytest.fixture(scope="module")
+def demo_store(tmp_path_factory):
+    """The generated demo library imported as dataset 'demo' (the project's own fixture)."""
+    from dancegraph.motion.dataset import import_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.store import ObjectStore
+
+    root = tmp_path_factory.mktemp("demo")
+    store = ObjectStore(root / "store")
+    import_dataset(write_demo_library(root / "lib"), "demo", store)
+    return store
+
+
+def test_dataset_build_cli_prints_counts_and_stores_a_version(demo_store, capsys):
+    from dancegraph.cli import main
+    from dancegraph.motion.dataset import load_dataset
+
+    assert (
+        main(["dataset", "build", "demo", "--store", str(demo_store.root), "--threshold", "15"])
+        == 0
+    )
+    out = capsys.readouterr().out
+    for word in ("nodes", "edges", "out-degree", "build time"):
+        assert word in out
+    g = artifact.load_current(demo_store, "demo")
+    ds = load_dataset(demo_store, "demo")
+    assert g.manifest["dataset"] == {"name": "demo", "version": ds.version, "licence": ds.licence}
+    assert g.manifest["params"]["threshold"] == 15.0
+    assert [n for n, k in zip(g.node_ids, g.node_kind, strict=True) if k == 0] == ds.node_ids()
+    assert f"nodes {g.n_nodes}" in out and f"edges {g.n_edges}" in out
+    # the node's stored motion is its bar: first frame equals the take's frame at the downbeat
+    bar = ds.bars[3]
+    m = ds.motion(bar.clip_id)
+    node = g.node_motion(g.node_index(bar.node_id))
+    frame = int(round(bar.beat_times[0] * m.fps))
+    info = g.node_info(g.node_index(bar.node_id))
+    assert info["frames"] == [bar.start_frame, bar.end_frame] and info["kind"] == "original"
+    mirrored = g.node_info(g.node_index(bar.node_id + "~m"))
+    assert mirrored["tags"] == ["mirror", "augmented"] + [
+        t for t in info["tags"] if t != "original"
+    ]
+    assert np.allclose(node.root_positions[0], m.root_positions[frame], atol=0.02)
+
+
+def test_dataset_build_of_unknown_dataset_names_it(demo_store, capsys):
+    from dancegraph.cli import main
+
+    assert main(["dataset", "build", "nosuch", "--store", str(demo_store.root)]) == 2
+    assert "unknown_dataset" in capsys.readouterr().err
+
+
+def test_compressed_features_keep_transition_costs(demo_build):
+    arrays, ids, manifest = demo_build
+    rng = np.random.default_rng(0)
+    p, q = rng.integers(0, len(ids), 500), rng.integers(0, len(ids), 500)
+    st = arrays["style"]
+    full = pair_cost(
+        arrays["exit"][p], arrays["entry"][q], st[p], st[q], manifest["feature_blocks"], 1.0, 1.5
+    )
+    pc = pair_cost(
+        arrays["exit_pc"][p], arrays["entry_pc"][q], st[p], st[q], manifest["pc_blocks"], 1.0, 1.5
+    )
+    assert arrays["exit_pc"].shape[1] < arrays["exit"].shape[1] / 4
+    assert np.all(pc <= full + 1e-3)  # a projection never lengthens a difference
+    assert np.median((full - pc) / full) < 0.05 and np.corrcoef(full, pc)[0, 1] > 0.98

@@ -1,0 +1,123 @@
+"""``dancegraph synthesize`` end to end: demo library → import → build → a generated song → files.
+
+Everything is the project's own code: the demo library and the song are generated, the dataset
+is imported and its graph built into a temporary object store, and the CLI runs analysis,
+search and render on the song's WAV file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dancegraph.cli import main as cli_main
+from dancegraph.graph.artifact import load_current
+from dancegraph.graph.build import build_graph
+from dancegraph.motion.bvh import read_bvh
+from dancegraph.motion.dataset import import_dataset, load_dataset
+from dancegraph.motion.demo import write_demo_library
+from dancegraph.motion.fbx import fbx_available
+from dancegraph.music.generator import generate_song, write_song
+from dancegraph.store import ObjectStore
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    store = ObjectStore(root / "store")
+    lib = write_demo_library(root / "lib")
+    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
+    build_graph(load_dataset(store, "demo"), store)
+    song = generate_song(
+        21, meter=4, tempo_bpm=124.0, form=["A", "B", "A"], section_bars={"A": 4, "B": 4}
+    )
+    wav, truth = write_song(song, root, "song")
+    return root, store, wav, song
+
+
+def test_synthesize_writes_dance_files(setup, capsys):
+    root, store, wav, song = setup
+    formats = ["bvh", "fbx"] if fbx_available() else ["bvh"]
+    spec = root / "spec.json"
+    spec.write_text(json.dumps({"seed": 1, "output": {"formats": formats, "fps": 30}}))
+    out = root / "out"
+    rc = cli_main(
+        [
+            "synthesize",
+            str(wav),
+            "--dataset",
+            "demo",
+            "--spec",
+            str(spec),
+            "--out",
+            str(out),
+            "--alternatives",
+            "2",
+            "--store",
+            str(store.root),
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    printed = json.loads(capsys.readouterr().out)
+    assert len(printed["alternatives"]) == 2 and printed["graph"]["name"] == "demo"
+
+    timeline = json.loads((out / "timeline.json").read_text())
+    graph = load_current(store, "demo")
+    n_frames = round(song.duration_s * 30)
+    for k in range(2):
+        motion = read_bvh(out / f"alternatives/{k}.bvh")
+        assert motion.skeleton == graph.skeleton and motion.n_frames == n_frames
+        assert np.all(np.isfinite(motion.rotations))
+        if "fbx" in formats:
+            assert (out / f"alternatives/{k}.fbx").stat().st_size > 10_000
+    # the bars found in the audio are the generated song's bars (the analysis really ran)
+    truth_downbeats = np.asarray(song.truth["downbeats"])
+    starts = np.array([b["start_s"] for b in timeline["bars"]])
+    assert len(starts) >= 8
+    assert np.median(np.abs(starts[:, None] - truth_downbeats[None, :]).min(axis=1)) < 0.07
+    prov = timeline["provenance"]
+    assert (
+        prov["dataset"]["name"] == "demo"
+        and prov["dataset"]["version"] == load_dataset(store, "demo").version
+    )
+    assert prov["dataset"]["licence"] and prov["graph"]["version"] == graph.version
+    assert prov["spec"]["alternatives"] == 2 and prov["spec"]["seed"] == 1
+    assert prov["audio"]["file"] == "song.wav" and len(prov["audio"]["sha256"]) == 64
+    assert isinstance(timeline["constraints"], dict) and timeline["constraints"]
+    alts = timeline["alternatives"]
+    assert [b["node"] for b in alts[0]["bars"]] != [b["node"] for b in alts[1]["bars"]]
+
+
+def test_synthesize_errors_are_clear(setup, capsys, tmp_path: Path):
+    root, store, wav, _ = setup
+    base = ["synthesize", str(wav), "--out", str(tmp_path / "o"), "--store", str(store.root)]
+    assert cli_main([*base, "--dataset", "nope"]) == 2
+    assert "unknown_dataset" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"alternatives": 99}')
+    assert cli_main([*base, "--dataset", "demo", "--spec", str(bad)]) == 2
+    assert "spec.alternatives" in capsys.readouterr().err
+    assert cli_main([*base, "--dataset", "demo", "--spec", str(tmp_path / "absent.json")]) == 2
+    assert "absent.json" in capsys.readouterr().err
+    junk = tmp_path / "junk.wav"
+    junk.write_bytes(b"not audio at all" * 100)
+    assert (
+        cli_main(
+            [
+                "synthesize",
+                str(junk),
+                "--dataset",
+                "demo",
+                "--out",
+                str(tmp_path / "o2"),
+                "--store",
+                str(store.root),
+            ]
+        )
+        == 2
+    )
+    assert "audio_" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "o2").exists()

@@ -1,0 +1,77 @@
+"""Retiming real salsa bars to 30 and 60 fps output."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from dancegraph.motion.bvh import read_bvh
+from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.retime import resample, retime, sample
+
+
+@pytest.fixture(scope="module")
+def salsa(salsa_dir: Path):
+    return read_bvh(salsa_dir / "60_07_scaled.bvh", fps=60).slice(600, 1200)
+
+
+def test_identity_retime(salsa):
+    same = retime(salsa, salsa.n_frames, salsa.fps)
+    np.testing.assert_allclose(same.root_positions, salsa.root_positions, atol=1e-12)
+    np.testing.assert_allclose(
+        np.abs(np.sum(same.rotations * salsa.rotations, -1)), 1.0, atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("fps", [30.0, 60.0])
+def test_bar_to_music_bar(salsa, fps):
+    """An 86-frame salsa bar (1.43 s at 60 fps) warped onto a 1.6 s music bar."""
+    bar = salsa.slice(100, 186)
+    n = int(round(1.6 * fps))
+    out = retime(bar, n, fps)
+    assert out.n_frames == n and out.fps == fps and np.isclose(out.duration_s, 1.6)
+    # frame k shows source frame k * 86 / n: compare with scipy's Slerp on every joint
+    src = np.arange(n) * 86 / n
+    for j in (0, 5, 20, 40):
+        ref = Slerp(np.arange(86), Rotation.from_quat(bar.rotations[:, j]))(np.clip(src, 0, 85))
+        dots = np.abs(np.sum(ref.as_quat() * out.rotations[:, j], axis=-1))
+        assert dots.min() > 1 - 1e-10
+    np.testing.assert_allclose(
+        out.root_positions[:, 1], np.interp(src, np.arange(86), bar.root_positions[:, 1])
+    )
+    # the warp is uniform: the world path is the source path, just slower
+    p_src, _ = forward_kinematics(bar)
+    p_out, _ = forward_kinematics(out)
+    np.testing.assert_allclose(p_out[0], p_src[0], atol=1e-12)
+    k = n // 2
+    f = k * 86 / n
+    lo = int(f)
+    np.testing.assert_allclose(
+        p_out[k], p_src[lo] + (f - lo) * (p_src[lo + 1] - p_src[lo]), atol=5e-3
+    )
+
+
+def test_endpoint_mode_hits_both_ends(salsa):
+    bar = salsa.slice(0, 87)  # a bar and its closing downbeat frame
+    out = retime(bar, 49, 30.0, endpoint=True)
+    np.testing.assert_allclose(out.root_positions[[0, -1]], bar.root_positions[[0, -1]], atol=1e-12)
+
+
+def test_slerp_takes_the_short_arc(salsa):
+    m = salsa.slice(0, 2)
+    m.rotations[1] = -m.rotations[1]  # same rotations, opposite sign
+    mid = sample(m, np.array([0.5]))
+    np.testing.assert_allclose(
+        np.abs(np.sum(mid.rotations[0] * m.rotations[0], -1)), 1.0, atol=1e-3
+    )
+
+
+def test_resample_keeps_duration(salsa):
+    for fps in (30.0, 60.0, 24.0):
+        out = resample(salsa, fps)
+        assert abs(out.duration_s - salsa.duration_s) <= 0.5 / fps
+    with pytest.raises(ValueError):
+        retime(salsa, 0, 30.0)

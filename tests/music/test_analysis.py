@@ -1,0 +1,147 @@
+"""analyze(): beats → 4-beat bars (the bar rule) → structure → features → signatures, and the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dancegraph.cli import main
+from dancegraph.errors import AudioError
+from dancegraph.music.analysis import MusicAnalysis, analyze, four_beat_bars, phrase_unit
+from dancegraph.music.generator import generate, random_config, write_song
+
+
+def _grid(n_beats: int, meter: int, pickup: int = 0, period: float = 0.5):
+    beats = 1.0 + period * np.arange(n_beats)
+    pos = (np.arange(n_beats) - pickup) % meter + 1
+    return beats, pos
+
+
+def test_bars_in_four_four_skip_the_pickup_and_complete_the_end():
+    beats, pos = _grid(21, 4, pickup=2)  # 2 pickup beats, 4 bars, then 3 beats of a fifth
+    bars, grid, warnings = four_beat_bars(beats, pos, 4, duration_s=beats[-1] + 2.0)
+    assert bars.shape == (5, 2) and grid.shape == (5, 5)
+    assert bars[0, 0] == beats[2]  # the first downbeat
+    assert np.allclose(grid[:, 0], beats[pos == 1][:5])
+    assert np.allclose(grid[-1, 3:], beats[-1] + 0.5 * np.array([1, 2]))  # completed
+    assert warnings == []
+    # If the audio stops, the unfinished bar is left out; so is a bar with only its downbeat.
+    assert len(four_beat_bars(beats, pos, 4, duration_s=beats[-1] + 0.2)[0]) == 4
+    assert len(four_beat_bars(beats[:19], pos[:19], 4, duration_s=beats[-1] + 5)[0]) == 4
+
+
+def test_bars_in_three_four_realign_every_three_bars():
+    beats, pos = _grid(37, 3)
+    bars, grid, warnings = four_beat_bars(beats, pos, 3, duration_s=beats[-1])
+    assert len(bars) == 9
+    downs = set(np.round(beats[pos == 1], 6))
+    starts_on_downbeat = [round(b, 6) in downs for b in bars[:, 0]]
+    assert starts_on_downbeat == [True, False, False] * 3
+    assert any("meter 3" in w for w in warnings)
+    assert phrase_unit(3) == 3 and phrase_unit(4) == 4 and phrase_unit(2) == 4
+
+
+def test_bars_in_two_four_pair_measures():
+    beats, pos = _grid(17, 2)
+    bars, grid, _ = four_beat_bars(beats, pos, 2, duration_s=beats[-1])
+    assert len(bars) == 4 and np.allclose(np.diff(grid, axis=1), 0.5)
+
+
+def test_a_downbeat_phase_change_is_absorbed_by_the_previous_bar():
+    # 2 bars of 4/4, a 2-beat measure, then 2 bars: the tracker's downbeats shift by 2 beats.
+    pos = np.array([1, 2, 3, 4, 1, 2, 3, 4, 1, 2, 1, 2, 3, 4, 1, 2, 3, 4, 1])
+    beats = 0.5 * np.arange(len(pos))
+    bars, grid, warnings = four_beat_bars(beats, pos, 4, duration_s=beats[-1])
+    assert np.allclose(bars[:, 0], [0.0, 2.0, 5.0, 7.0])
+    assert np.allclose(grid[1], np.linspace(2.0, 5.0, 5))  # 6 beats spread over the bar
+    assert any("bar 1" in w for w in warnings)
+
+
+def test_no_beats_no_bars():
+    bars, grid, _ = four_beat_bars(np.array([1.0, 1.5]), np.array([1, 2]), 4, duration_s=1.6)
+    assert bars.shape == (0, 2) and grid.shape == (0, 5)
+
+
+@pytest.fixture(scope="module")
+def analysed(tmp_path_factory):
+    """A 4/4 song at 120 BPM, form intro A B A B, 4-bar sections (about 42 s), from its WAV."""
+    cfg = random_config(
+        12,
+        meter=4,
+        tempo_bpm=120,
+        form=["intro", "A", "B", "A", "B"],
+        section_bars={"intro": 4, "A": 4, "B": 4},
+    )
+    cfg.pickup_beats, cfg.hard_cases = 0, []
+    song = generate(cfg)
+    wav, _ = write_song(song, tmp_path_factory.mktemp("song"), "song")
+    return song, wav, analyze(wav)
+
+
+def test_analyze_a_generated_song(analysed):
+    song, _, a = analysed
+    t = song.truth
+    assert a.meter == 4 and abs(a.tempo_bpm - 120) < 3
+    assert abs(a.duration_s - song.duration_s) < 0.01
+    ref = np.asarray(t["downbeats"])
+    hits = np.mean([np.min(np.abs(ref - d)) < 0.07 for d in a.downbeats])
+    assert hits >= 0.9
+    b = a.n_bars
+    assert b >= 18
+    assert a.bars.shape == (b, 2) and a.bar_beats.shape == (b, 5)
+    assert a.signature_scores.shape == (b, 13) and a.signature_topk.shape == (b, 3)
+    assert a.bar_onset_rms.shape == (b, 2, 200) and len(a.tags) == b
+    # Phrases tile the bars; A and B repeat.
+    assert a.phrases[0]["start_bar"] == 0 and a.phrases[-1]["end_bar"] == b
+    assert np.allclose(a.phrase_starts_s(), [a.bars[p["start_bar"], 0] for p in a.phrases])
+    labels = "".join(p["label"] for p in a.phrases)
+    assert labels[1:] in ("BCBC", "BCBCD") and len(set(labels[:3])) == 3
+
+
+def test_to_dict_from_dict_and_summary(analysed):
+    _, _, a = analysed
+    d = json.loads(json.dumps(a.to_dict()))
+    b = MusicAnalysis.from_dict(d)
+    assert np.allclose(b.bars, a.bars, atol=1e-4) and np.allclose(
+        b.bar_onset_rms, a.bar_onset_rms, atol=1e-4
+    )
+    assert b.phrases == a.phrases and b.tags == a.tags and b.meter == a.meter
+    assert np.array_equal(b.signature_topk, a.signature_topk)
+    s = a.summary()
+    assert s["n_bars"] == a.n_bars and s["form"] == "".join(p["label"] for p in a.phrases)
+    empty = MusicAnalysis.from_dict(
+        {"duration_s": 1, "tempo_bpm": 0, "tempo_confidence": 0, "meter": 4}
+    )
+    assert empty.bars.shape == (0, 2) and empty.bar_onset_rms.shape == (0, 2, 200)
+
+
+def test_cli_analyze(analysed, capsys, tmp_path):
+    _, wav, a = analysed
+    assert main(["analyze", str(wav), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["meter"] == a.meter and len(out["bars"]) == a.n_bars and "tags" in out
+    bad = tmp_path / "notes.mp3"
+    bad.write_text("this is not audio\n" * 50)
+    assert main(["analyze", str(bad)]) == 2
+    assert "audio_undecodable" in capsys.readouterr().err
+
+
+def test_array_input_needs_a_rate():
+    with pytest.raises(AudioError) as e:
+        analyze(np.zeros(22050, dtype=np.float32))
+    assert e.value.field == "sr"
+
+
+def test_array_input_int16_stereo_other_rate(analysed):
+    import librosa
+
+    song, _, a = analysed
+    n = song.sr * 20
+    y44 = librosa.resample(song.y[:n], orig_sr=song.sr, target_sr=44100)
+    pcm = (np.stack([y44, y44]) * 32767).astype(np.int16)
+    b = analyze(pcm, 44100)
+    assert abs(b.duration_s - 20.0) < 0.01 and b.meter == a.meter
+    assert abs(b.tempo_bpm - 120) < 3
+    assert np.allclose(b.downbeats[:5], a.downbeats[:5], atol=0.03)
