@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 
@@ -24,7 +25,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dancegraph", description="Music in, dance out.")
     parser.add_argument("--version", action="version", version=f"dancegraph {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_version, _add_convert, _add_synthesize, _add_keys, _add_service, _add_analyze, _add_dataset, _add_motion):
+    for add in (
+        _add_version,
+        _add_convert,
+        _add_synthesize,
+        _add_keys,
+        _add_service,
+        _add_analyze,
+        _add_dataset,
+        _add_motion,
+        _add_quickstart,
+    ):
         add(sub)
     return parser
 
@@ -68,7 +79,9 @@ def _add_dataset(sub) -> None:
     imp.add_argument("--name", required=True, help="dataset name (letters, digits, . _ -)")
     imp.add_argument("--manifest", default=None, help="manifest file (YAML or JSON)")
     imp.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
-    imp.add_argument("--json", action="store_true", help="print the report as JSON (default: a table)")
+    imp.add_argument(
+        "--json", action="store_true", help="print the report as JSON (default: a table)"
+    )
 
     def _import(args) -> int:
         from tqdm import tqdm
@@ -246,8 +259,11 @@ def _add_keys(sub) -> None:
 def _add_service(sub) -> None:
     """``serve``, ``worker``, ``reaper``: the service processes (thin: services/ does the work)."""
     p = sub.add_parser("serve", help="run API + worker + reaper (+ in-process graph store)")
-    p.add_argument("--embedded", action="store_true",
-                   help="SQLite, filesystem broker, in-process graph store under DANCEGRAPH_HOME (no servers)")
+    p.add_argument(
+        "--embedded",
+        action="store_true",
+        help="SQLite, filesystem broker, in-process graph store under DANCEGRAPH_HOME (no servers)",
+    )
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--concurrency", type=int, default=1, help="worker pool processes")
@@ -260,7 +276,9 @@ def _add_service(sub) -> None:
     p.set_defaults(func=_serve)
 
     p = sub.add_parser("worker", help="run a Celery worker (queues: analysis, fbx)")
-    p.add_argument("-Q", "--queues", default="analysis,fbx", help="comma-separated queues to consume")
+    p.add_argument(
+        "-Q", "--queues", default="analysis,fbx", help="comma-separated queues to consume"
+    )
     p.add_argument("-c", "--concurrency", type=int, default=1, help="pool processes")
     p.add_argument("-n", "--name", default=None, help="worker node name (default: celery's)")
 
@@ -269,7 +287,9 @@ def _add_service(sub) -> None:
 
         from services.embedded import worker_command
 
-        cmd = worker_command(tuple(q for q in args.queues.split(",") if q), args.concurrency, args.name)
+        cmd = worker_command(
+            tuple(q for q in args.queues.split(",") if q), args.concurrency, args.name
+        )
         os.execv(cmd[0], cmd)  # become the worker: signals reach Celery directly
 
     p.set_defaults(func=_worker)
@@ -347,6 +367,24 @@ def _add_synthesize(sub) -> None:
                 ],
             }
         )
+
+    p.set_defaults(func=run)
+
+
+def _add_quickstart(sub) -> None:
+    p = sub.add_parser(
+        "quickstart",
+        help="the main job end to end on the embedded default: library → graph → job → files",
+    )
+    p.add_argument("--out", default="out", help="where to download the result files")
+    p.add_argument("--formats", default="bvh,fbx", help="comma-separated output formats (bvh, fbx)")
+
+    def run(args) -> int:
+        from services.quickstart import run as quickstart
+
+        job = quickstart(args.out, [f for f in args.formats.split(",") if f])
+        print(f"job {job['id']} succeeded; results in {os.path.abspath(args.out)}")
+        return 0
 
     p.set_defaults(func=run)
 

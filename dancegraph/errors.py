@@ -41,7 +41,9 @@ class MotionFileError(DanceGraphError):
     code = "motion_file_invalid"
     status = 422
 
-    def __init__(self, message: str, *, path: str, line: int | None = None, code: str | None = None):
+    def __init__(
+        self, message: str, *, path: str, line: int | None = None, code: str | None = None
+    ):
         where = f"{path}:{line}" if line is not None else path
         super().__init__(f"{where}: {message}", code=code, field=path)
         self.path = path

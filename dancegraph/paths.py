@@ -1,6 +1,7 @@
 """Where DanceGraph finds shared data and keeps its own (overridable by environment variables).
 
 - ``DANCEGRAPH_SHARED``: the shared datasets folder (default: ``../shared`` beside the repo).
+- ``DANCEGRAPH_STORE_ROOT``: the object store root (default: ``$DANCEGRAPH_HOME/store``).
 - ``DANCEGRAPH_HOME``: the working folder of the embedded default — object store, SQLite
   database, broker folder, models (default: ``./var`` in the current directory).
 """
@@ -27,4 +28,4 @@ def home_dir() -> Path:
 
 def store_dir() -> Path:
     """Root of the filesystem object store of the embedded default."""
-    return Path(os.environ.get("DANCEGRAPH_STORE", home_dir() / "store")).resolve()
+    return Path(os.environ.get("DANCEGRAPH_STORE_ROOT", home_dir() / "store")).resolve()

@@ -26,12 +26,16 @@ class Weights(_Strict):
     data: float = Field(1.0, ge=0, description="λ10: weight of the per-bar data term")
     transition: float = Field(2.0, ge=0, description="λ11: weight of the transition term (novelty)")
     style: float = Field(1.0, ge=0, description="λ12: style distance inside the data term")
-    rhythm: float = Field(1.5, ge=0, description="λ13: rhythm-signature distance inside the data term")
+    rhythm: float = Field(
+        1.5, ge=0, description="λ13: rhythm-signature distance inside the data term"
+    )
     structure: float = Field(1000.0, ge=0, description="ζ: penalty per violated repeat/mirror pair")
 
 
 class StructureRules(_Strict):
-    repeat: bool = Field(True, description="same phrase label and index in different occurrences → same node")
+    repeat: bool = Field(
+        True, description="same phrase label and index in different occurrences → same node"
+    )
     mirror: bool = Field(True, description="same occurrence, same meter identity → mirrored nodes")
 
 
@@ -71,7 +75,9 @@ class Exclude(_Ranged):
     """Never use the matching nodes (optionally only inside a bar or time range)."""
 
     node: str | None = Field(None, description="node id or take wildcard, e.g. '61_07:*'")
-    tag: str | None = Field(None, description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'")
+    tag: str | None = Field(
+        None, description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'"
+    )
 
     @model_validator(mode="after")
     def _one_target(self):
@@ -106,7 +112,9 @@ class Stage(_Strict):
 class SignatureTarget(_Strict):
     """Follow a motif signature: the dataset's own, or a reference take's."""
 
-    target: str = Field("dataset", description="'dataset' or a take id of the dataset, e.g. '60_03'")
+    target: str = Field(
+        "dataset", description="'dataset' or a take id of the dataset, e.g. '60_03'"
+    )
     weight: float = Field(0.5, ge=0)
 
 
@@ -116,7 +124,9 @@ class MotifPin(_Strict):
 
 
 class Output(_Strict):
-    formats: list[Literal["bvh", "fbx"]] = Field(default_factory=lambda: ["bvh", "fbx"], min_length=1)
+    formats: list[Literal["bvh", "fbx"]] = Field(
+        default_factory=lambda: ["bvh", "fbx"], min_length=1
+    )
     fps: Literal[30, 60] = 30
     foot_cleanup: bool = True
 
@@ -128,7 +138,9 @@ class Spec(_Strict):
     alternatives: int = Field(3, ge=1, le=10)
     seed: int = Field(0, ge=0)
     weights: Weights = Field(default_factory=Weights)
-    transition_threshold: float = Field(20.0, gt=0, description="δT: largest transition cost of an edge")
+    transition_threshold: float = Field(
+        20.0, gt=0, description="δT: largest transition cost of an edge"
+    )
     structure: StructureRules = Field(default_factory=StructureRules)
     include: list[Include] = Field(default_factory=list, max_length=1000)
     exclude: list[Exclude] = Field(default_factory=list, max_length=1000)
@@ -136,7 +148,9 @@ class Spec(_Strict):
     stage: Stage | None = None
     signature: SignatureTarget | None = None
     motifs: list[MotifPin] = Field(default_factory=list, max_length=1000)
-    recreate: str | None = Field(None, description="take id whose motif sequence to re-create on this music")
+    recreate: str | None = Field(
+        None, description="take id whose motif sequence to re-create on this music"
+    )
     output: Output = Field(default_factory=Output)
     callback_url: HttpUrl | None = None
 
@@ -145,6 +159,9 @@ class Spec(_Strict):
         if self.stage is not None:
             for i, wp in enumerate(self.waypoints):
                 x, z = wp.position
-                if not (self.stage.x[0] <= x <= self.stage.x[1] and self.stage.z[0] <= z <= self.stage.z[1]):
+                if not (
+                    self.stage.x[0] <= x <= self.stage.x[1]
+                    and self.stage.z[0] <= z <= self.stage.z[1]
+                ):
                     raise ValueError(f"waypoints[{i}] lies outside the stage")
         return self

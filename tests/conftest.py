@@ -42,5 +42,5 @@ def nonmusic_dir(shared: Path) -> Path:
 def home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """A fresh DANCEGRAPH_HOME for one test."""
     monkeypatch.setenv("DANCEGRAPH_HOME", str(tmp_path / "home"))
-    monkeypatch.delenv("DANCEGRAPH_STORE", raising=False)
+    monkeypatch.delenv("DANCEGRAPH_STORE_ROOT", raising=False)
     return tmp_path / "home"

@@ -4,7 +4,7 @@ A thin HTTP shell over :class:`services.graphstore.client.LocalGraphStore`, whic
 dataset's current graph artifact from the object store (``dancegraph.graph.artifact``) and
 reloads it when a new build lands (the old version keeps answering requests already holding it).
 
-Run: ``uvicorn services.graphstore.app:app`` (object store root: ``DANCEGRAPH_STORE``, or
+Run: ``uvicorn services.graphstore.app:app`` (object store root: ``DANCEGRAPH_STORE_ROOT``, or
 ``$DANCEGRAPH_HOME/store``). Errors are RFC 9457 problem details with a stable ``code``: an
 unknown graph is ``404 unknown_dataset``, an unknown node ``404 unknown_node``, a bad spec
 ``422 spec_invalid`` / ``spec_unknown_field``, a bad analysis ``422 analysis_invalid``.

@@ -104,7 +104,7 @@ def make_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[.
         }
         values.update(overrides)
         monkeypatch.setenv("DANCEGRAPH_HOME", str(tmp_path / "home"))
-        monkeypatch.setenv("DANCEGRAPH_STORE", str(values["store_root"]))
+        monkeypatch.setenv("DANCEGRAPH_STORE_ROOT", str(values["store_root"]))
         for key, value in values.items():
             monkeypatch.setenv(f"DANCEGRAPH_{key.upper()}", str(value))
         get_settings.cache_clear()

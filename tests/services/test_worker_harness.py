@@ -386,7 +386,6 @@ def make_cluster(home: Path, database_url: str, broker_url: str, store_root: Pat
             "DANCEGRAPH_BROKER_URL": broker_url,
             "DANCEGRAPH_BROKER_FOLDER": str(home / "broker"),
             "DANCEGRAPH_STORE_ROOT": str(store_root),
-            "DANCEGRAPH_STORE": str(store_root),  # the graph-store app reads this one
             "DANCEGRAPH_GRAPHSTORE_URL": "local",
             "DANCEGRAPH_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S),
             "DANCEGRAPH_WEBHOOK_BACKOFF_S": "0.5",
