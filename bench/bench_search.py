@@ -87,25 +87,9 @@ def scale_graph(
     reps = max(1, int(np.ceil(target_edges / (EDGES_PER_NODE * n))))
     a = {k: np.asarray(v) for k, v in g.arrays.items()}
     out = {}
+    # per-node arrays: every artifact array but the CSR edges and the per-frame motion
     node_keys = [
-        "node_clip",
-        "node_bar",
-        "node_kind",
-        "node_tags",
-        "node_source",
-        "mirror_of",
-        "style",
-        "signature",
-        "motif",
-        "entry",
-        "exit",
-        "entry_pc",
-        "exit_pc",
-        "disp",
-        "radius",
-        "root_path",
-        "duration",
-        "motion_row",
+        k for k in artifact.ARRAYS if k not in {"indptr", "indices", "costs", "root", "rotations"}
     ]
     for k in node_keys:
         out[k] = np.concatenate([a[k]] * reps)

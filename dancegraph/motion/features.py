@@ -18,29 +18,10 @@ from scipy.signal import find_peaks
 from dancegraph.motion import quat
 from dancegraph.motion.contacts import foot_contacts
 from dancegraph.motion.fk import canonical_positions, forward_kinematics
-from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 
 #: The 18 main joints (canonical names) of the phrase input and of transition costs.
-MAIN_JOINTS: tuple[str, ...] = (
-    "hips",
-    "chest",
-    "neck",
-    "head",
-    "left_shoulder",
-    "left_elbow",
-    "left_wrist",
-    "right_shoulder",
-    "right_elbow",
-    "right_wrist",
-    "left_hip",
-    "left_knee",
-    "left_ankle",
-    "left_toe",
-    "right_hip",
-    "right_knee",
-    "right_ankle",
-    "right_toe",
-)
+MAIN_JOINTS: tuple[str, ...] = tuple(j for j in CANONICAL_JOINTS if j != "spine")
 
 BAR_SAMPLES = 60
 PHRASE_FPS = 30.0
