@@ -628,7 +628,13 @@ def import_dataset(
     prefix = f"datasets/{name}"
     # Clip data goes to a fresh folder that dataset.json names; the previous import stays
     # readable until the new dataset.json replaces it, then its folder is removed.
-    data_prefix = f"{prefix}/data-{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:8]}"
+    # Microsecond stamps sort by time, so cleanup below can tell earlier imports from later ones.
+    now_ns = time.time_ns()
+    stamp = (
+        time.strftime("%Y%m%dT%H%M%S", time.gmtime(now_ns // 10**9))
+        + f"{now_ns // 1000 % 10**6:06d}"
+    )
+    data_prefix = f"{prefix}/data-{stamp}-{uuid.uuid4().hex[:8]}"
     skeleton: Skeleton | None = None
     rows: list[ClipInfo] = []
     bars: list[BarInfo] = []
