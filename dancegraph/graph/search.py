@@ -573,6 +573,26 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
     alternatives: list[Alternative] = []
     bars_per_var = np.bincount(var, minlength=n_vars).astype(np.float32)
     penalty = np.zeros(n_nodes, dtype=np.float32)
+
+    def run_with(unary_costs: np.ndarray) -> np.ndarray:
+        # one DP pass over the tied chain; only the per-variable costs change between passes
+        return _run(
+            ctx,
+            unary_costs,
+            chain_var,
+            chain_bar,
+            gap_ptr,
+            gap_bar,
+            gap_var,
+            gap_par,
+            var_chain,
+            beam,
+            spec,
+            var,
+            parity,
+            mirror_of,
+        )
+
     for k in range(spec.alternatives):
         # the reuse penalty counts every bar a variable stands for
         u = unary + bars_per_var[:, None] * penalty[None, :]
@@ -588,24 +608,7 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
                 )
                 return (alt.cost + scale * chi2, alt, chi2, nodes)
 
-            best = scored(
-                _run(
-                    ctx,
-                    u,
-                    chain_var,
-                    chain_bar,
-                    gap_ptr,
-                    gap_bar,
-                    gap_var,
-                    gap_par,
-                    var_chain,
-                    beam,
-                    spec,
-                    var,
-                    parity,
-                    mirror_of,
-                )
-            )
+            best = scored(run_with(u))
             if spec.signature.weight > 0:
                 # plan a motif per variable whose histogram follows the target, then search with a
                 # penalty on other motifs; keep whichever path has the lower cost + scale·χ²
@@ -621,46 +624,14 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
                     off_plan = np.where(
                         motif[None, :] != plan[:, None], np.float32(level), np.float32(0.0)
                     )
-                    cand = scored(
-                        _run(
-                            ctx,
-                            u + off_plan,
-                            chain_var,
-                            chain_bar,
-                            gap_ptr,
-                            gap_bar,
-                            gap_var,
-                            gap_par,
-                            var_chain,
-                            beam,
-                            spec,
-                            var,
-                            parity,
-                            mirror_of,
-                        )
-                    )
+                    cand = scored(run_with(u + off_plan))
                     if cand[0] < best[0]:
                         best = cand
             _, alt, chi2, nodes = best
             alt.choreography["signature_chi2"] = chi2
             alt.choreography["target"] = spec.signature.target
         else:
-            nodes = _run(
-                ctx,
-                u,
-                chain_var,
-                chain_bar,
-                gap_ptr,
-                gap_bar,
-                gap_var,
-                gap_par,
-                var_chain,
-                beam,
-                spec,
-                var,
-                parity,
-                mirror_of,
-            )
+            nodes = run_with(u)
             alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
         if recreate is not None:
             alt.choreography["recreate_match"] = float(np.mean(motif[nodes] == recreate))
