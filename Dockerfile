@@ -1,5 +1,14 @@
 # DanceGraph: one image for api, worker and graphstore; the `fbx` target adds Blender (bpy) for
 # the FBX worker. Build: docker build -t dancegraph .   (or: docker compose build)
+FROM node:20-bookworm-slim AS frontend
+# the preview page: three.js bundled by esbuild from the pinned lock file (see frontend/)
+WORKDIR /src/frontend
+COPY frontend/package.json frontend/package-lock.json ./
+RUN npm ci --no-audit --no-fund
+COPY frontend/build.mjs ./
+COPY frontend/src ./src
+RUN DANCEGRAPH_PREVIEW_OUT=/preview npm run build
+
 FROM python:3.11-slim-bookworm AS base
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 \
     DANCEGRAPH_HOME=/data DANCEGRAPH_STORE=/data/store
@@ -10,6 +19,7 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY dancegraph ./dancegraph
 COPY services ./services
+COPY --from=frontend /preview ./services/preview_static
 COPY migrations ./migrations
 COPY alembic.ini openapi.yaml ./
 COPY scripts ./scripts

@@ -1,7 +1,7 @@
 # The two set-up commands of the README: `make demo` and `make test`.
 PY := .venv/bin/python
 
-.PHONY: install demo test lint openapi bench clean
+.PHONY: install demo test lint openapi bench clean frontend
 
 install:
 	bash scripts/install.sh
@@ -15,6 +15,9 @@ test: install
 lint:
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
+
+frontend:
+	bash scripts/install-frontend.sh
 
 openapi:
 	$(PY) scripts/export_openapi.py

@@ -35,6 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
         _add_dataset,
         _add_motion,
         _add_quickstart,
+        _add_eval,
+        _add_preview,
+        _add_train,
     ):
         add(sub)
     return parser
@@ -132,6 +135,14 @@ def _add_dataset(sub) -> None:
         default=0.25,
         help="beat-shuffled bars per original bar, at most",
     )
+    bld.add_argument(
+        "--embedding",
+        default="descriptor",
+        help="node style embedding: 'descriptor' or a learned style model file (.dgm)",
+    )
+    bld.add_argument(
+        "--rhythm-model", default=None, help="learned rhythm model file (.dgm): node signatures"
+    )
     bld.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
     bld.add_argument("--json", action="store_true", help="print the report as JSON")
 
@@ -154,7 +165,9 @@ def _add_dataset(sub) -> None:
                 bar.n = int(100 * fraction)  # each stage runs 0 → 100 %
                 bar.refresh()
 
-            report = build_dataset_graph(_store(args), args.name, params, progress)
+            report = build_dataset_graph(
+                _store(args), args.name, params, progress, args.embedding, args.rhythm_model
+            )
         if args.json:
             _print_json(report)
         else:
@@ -371,6 +384,86 @@ def _add_synthesize(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_eval(sub) -> None:
+    """``eval AUDIO... --dataset NAME --out DIR`` and ``eval --result DIR``."""
+    from dancegraph.eval import ROWS
+
+    p = sub.add_parser(
+        "eval",
+        help="evaluate dances: baselines and ablations on songs (metrics.json, report.html)",
+    )
+    p.add_argument("audio", nargs="*", help="songs to dance (not with --result)")
+    p.add_argument("--dataset", default=None, help="dataset whose graph to dance from")
+    p.add_argument("--out", default=None, help="output folder (metrics.json, report.html)")
+    p.add_argument("--spec", default=None, help="constraint spec, JSON file (dancegraph.spec.Spec)")
+    p.add_argument(
+        "--rows", nargs="+", default=None, choices=ROWS, help="rows to run (default: all)"
+    )
+    p.add_argument(
+        "--result", default=None, help="score an existing synthesize/job result folder instead"
+    )
+    p.add_argument("--audio-file", default=None, help="with --result: the song, for librosa beats")
+    p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+
+    def run(args) -> int:
+        from dancegraph.errors import SpecError
+        from dancegraph.eval.harness import evaluate, evaluate_result, load_library, load_song
+        from dancegraph.motion.dataset import load_dataset
+        from dancegraph.paths import store_dir
+        from dancegraph.store import ObjectStore
+        from services.graphstore.client import LocalGraphStore, parse_spec
+
+        store = ObjectStore(args.store or store_dir())
+        if args.result:
+            timeline_path = os.path.join(args.result, "timeline.json")
+            try:
+                with open(timeline_path, encoding="utf-8") as fh:
+                    prov = json.load(fh).get("provenance", {})
+            except (OSError, ValueError) as exc:
+                raise SpecError(
+                    f"cannot read {timeline_path}: {exc}", code="eval_bad_result", field="result"
+                ) from exc
+            name = args.dataset or prov.get("dataset", {}).get("name")
+            version = prov.get("graph", {}).get("version")
+            graphs = LocalGraphStore(store)
+            graph = graphs.graph_version(name, version) if version else graphs.graph(name)
+            lib = load_library(graph, load_dataset(store, name))
+            metrics = evaluate_result(args.result, lib, args.audio_file)
+            _print_json({"out": args.result, "rows": metrics["rows"]})
+            return 0
+        if not args.audio or not args.dataset or not args.out:
+            raise SpecError(
+                "eval needs AUDIO..., --dataset and --out (or --result DIR)",
+                code="eval_usage",
+                field="audio",
+            )
+        spec: dict = {}
+        if args.spec:
+            try:
+                with open(args.spec, encoding="utf-8") as fh:
+                    spec = json.load(fh)
+            except (OSError, ValueError) as exc:
+                raise SpecError(
+                    f"cannot read the spec {args.spec}: {exc}", field=args.spec
+                ) from exc
+        parsed = parse_spec(args.dataset, spec)
+        graph = LocalGraphStore(store).graph(args.dataset)
+        songs = [load_song(a) for a in args.audio]  # bad audio fails before the library loads
+        lib = load_library(graph, load_dataset(store, args.dataset))
+        metrics = evaluate(
+            songs,
+            lib,
+            parsed,
+            args.out,
+            args.rows,
+            progress=lambda song, row: print(f"{song}: {row}", file=sys.stderr),
+        )
+        _print_json({"out": args.out, "seconds": metrics["seconds"], "rows": metrics["rows"]})
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _add_quickstart(sub) -> None:
     p = sub.add_parser(
         "quickstart",
@@ -387,6 +480,72 @@ def _add_quickstart(sub) -> None:
         return 0
 
     p.set_defaults(func=run)
+
+
+def _add_preview(sub) -> None:
+    p = sub.add_parser(
+        "preview", help="watch a synthesize output in the browser: the dance on the song"
+    )
+    p.add_argument("result_dir", help="a `dancegraph synthesize --out` folder (with timeline.json)")
+    p.add_argument(
+        "--audio", default=None, help="the song (default: found through timeline.json's provenance)"
+    )
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8050)
+
+    def run(args) -> int:
+        from services.preview_server import serve
+
+        serve(args.result_dir, args.audio, args.host, args.port)
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def _add_train(sub) -> None:
+    p = sub.add_parser("train", help="train the learned style or rhythm embedding (CPU)")
+    t_sub = p.add_subparsers(dest="train_command", required=True)
+    for kind in ("style", "rhythm"):
+        k = t_sub.add_parser(kind, help=f"train the {kind} model (docs/embeddings.md)")
+        k.add_argument("--manifest", required=True, help="training manifest (JSON or YAML)")
+        k.add_argument("--out", required=True, help="folder for checkpoint, metrics, model file")
+        k.add_argument("--epochs", type=int, default=20)
+        k.add_argument("--seed", type=int, default=0)
+        k.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
+        if kind == "style":
+            k.add_argument(
+                "--phase1-epochs", type=int, default=None, help="unpaired epochs (default half)"
+            )
+        k.set_defaults(func=lambda args, kind=kind: _run_train(kind, args))
+    d = t_sub.add_parser("make-data", help="generate the small paired training set")
+    d.add_argument("--out", required=True)
+    d.add_argument("--songs", type=int, default=10)
+    d.add_argument("--bars", type=int, default=4, help="bars per song section")
+    d.add_argument("--seed", type=int, default=0)
+
+    def make_data(args) -> int:
+        from dancegraph.embed.data import write_paired_set
+
+        print(write_paired_set(args.out, args.songs, args.bars, args.seed))
+        return 0
+
+    d.set_defaults(func=make_data)
+
+
+def _run_train(kind: str, args) -> int:
+    from dancegraph.embed.train import train
+
+    summary = train(
+        kind,
+        args.manifest,
+        args.out,
+        epochs=args.epochs,
+        seed=args.seed,
+        resume=args.resume,
+        phase1_epochs=getattr(args, "phase1_epochs", None),
+    )
+    _print_json(summary)
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -395,6 +395,7 @@ def _provenance(graph: MotionGraph, spec: Spec, analysis, extra: dict | None) ->
         },
         "models": {
             "style_embedding": embedding.get("version"),
+            "rhythm_model": (embedding.get("rhythm_model") or {}).get("version"),
             "beat_tracker": analysis.method,
             "beat_tracker_weights": _beatnet_version() if analysis.method == "beatnet" else None,
             "dancegraph": __version__,
@@ -441,13 +442,9 @@ def _json_default(obj):
 
 
 def _audio_provenance(path: Path) -> dict:
-    import hashlib
+    from dancegraph.store import file_sha256
 
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 20):
-            digest.update(chunk)
-    return {"file": path.name, "sha256": digest.hexdigest()}
+    return {"file": path.name, "sha256": file_sha256(path)}
 
 
 def synthesize(

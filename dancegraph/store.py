@@ -122,6 +122,15 @@ class ObjectStore:
         )
 
 
+def file_sha256(path: str | Path) -> str:
+    """sha256 hex digest of a file's content (read in 1 MiB chunks): the project's content hash."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def blob_key(sha256_hex: str) -> str:
     """Content-addressed key of a blob with the given sha256 hex digest."""
     if not re.fullmatch(r"[0-9a-f]{64}", sha256_hex):

@@ -25,3 +25,8 @@ fi
 if [ "${DANCEGRAPH_SKIP_BLENDER:-0}" != "1" ]; then
   bash scripts/install-blender.sh
 fi
+
+# the browser preview page (Node.js + npm); DANCEGRAPH_SKIP_FRONTEND=1 skips it
+if [ "${DANCEGRAPH_SKIP_FRONTEND:-0}" != "1" ]; then
+  bash scripts/install-frontend.sh
+fi

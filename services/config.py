@@ -84,10 +84,22 @@ class Settings(BaseSettings):
     webhook_backoff_s: float = Field(
         2.0, ge=0, description="first retry delay; doubles each attempt"
     )
+    preview_secret: str = Field(
+        "dancegraph-dev-preview-secret",
+        description="HMAC-SHA256 key of the preview page's ?token= links (set in production!)",
+    )
+    preview_token_ttl_s: int = Field(
+        4 * 3600, gt=0, description="lifetime of a preview link handed out with a job"
+    )
     public_base_url: str = Field(
         "", description="prefix of absolute URLs in responses ('' = relative)"
     )
     log_json: bool = Field(True, description="structured JSON logs")
+    warm_up: bool = Field(
+        True,
+        description="compile/load the numeric kernels when a worker or graph store starts "
+        "(dancegraph.jit), so the first song does not pay ~25 s of compilation",
+    )
 
     @property
     def is_sqlite(self) -> bool:

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-from dancegraph.paths import shared_dir
+from dancegraph.paths import REPO_ROOT, shared_dir
+
+# One numba cache for the test process and every worker it starts (tests give each worker its own
+# DANCEGRAPH_HOME, which would otherwise mean a cold compile per worker).
+os.environ.setdefault("NUMBA_CACHE_DIR", str(REPO_ROOT / "var" / "numba_cache"))
 
 
 @pytest.fixture(scope="session")

@@ -46,7 +46,7 @@ import numpy as np
 
 from dancegraph.errors import ModelFileError, NotFoundError
 from dancegraph.motion.skeleton import Motion, Skeleton
-from dancegraph.store import ObjectStore
+from dancegraph.store import ObjectStore, file_sha256
 
 FORMAT_VERSION = 1
 
@@ -247,14 +247,6 @@ def make_node_ids(graph: MotionGraph) -> list[str]:
     return ids
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 22):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def graph_key(name: str, version: str | None = None) -> str:
     return f"graphs/{name}" if version is None else f"graphs/{name}/{version}"
 
@@ -285,13 +277,13 @@ def write_graph(
     for key, arr in arrays.items():
         path = tmp / f"{key}.npy"
         np.save(path, np.ascontiguousarray(arr), allow_pickle=False)
-        checksums[f"{key}.npy"] = _sha256(path)
+        checksums[f"{key}.npy"] = file_sha256(path)
         digest.update(checksums[f"{key}.npy"].encode())
     if node_ids is not None:
         if len(node_ids) != arrays["node_clip"].shape[0]:
             raise ValueError("node_ids must name every node")
         (tmp / "node_ids.txt").write_text("\n".join(node_ids))
-        checksums["node_ids.txt"] = _sha256(tmp / "node_ids.txt")
+        checksums["node_ids.txt"] = file_sha256(tmp / "node_ids.txt")
         digest.update(checksums["node_ids.txt"].encode())
     if version is None:
         version = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + digest.hexdigest()[:8]
@@ -390,7 +382,7 @@ def load_graph(path: str | os.PathLike, *, verify: bool = False, mmap: bool = Tr
     arrays = {}
     for key in manifest["arrays"]:
         file = folder / f"{key}.npy"
-        if verify and _sha256(file) != manifest["checksums"].get(f"{key}.npy"):
+        if verify and file_sha256(file) != manifest["checksums"].get(f"{key}.npy"):
             raise ModelFileError(
                 f"{file}: checksum mismatch", code="graph_corrupt", field=f"{key}.npy"
             )

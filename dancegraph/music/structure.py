@@ -14,8 +14,9 @@ by time series structure features and segment similarity"), at bar resolution:
 4. Boundaries by dynamic programming over bar boundaries: each boundary earns its novelty less a
    threshold, each phrase pays a length prior that prefers ``unit`` and ``2 * unit`` bars
    (4 and 8 bars in 4/4), so boundaries snap to bars and phrases to 4/8-bar units. Two
-   adjacent ``unit``-bar phrases that are alike, or that always come as a pair and sound alike
-   (timbre), become one ``2 * unit``-bar phrase (a section made of a repeated or answered
+   adjacent ``unit``-bar phrases that always come as a pair and are alike, or sound alike
+   (timbre), become one ``2 * unit``-bar phrase (a unit that also occurs alone stays a phrase
+   of its own, so back-to-back repeats of a 4-bar section are kept apart) (a section made of a repeated or answered
    4-bar pattern); fragments shorter than ``unit`` join a same-label neighbour.
 5. Labels: segment distance = mean, along the best-aligned diagonal, of the distances between
    bar-long windows starting at each beat (bar offsets, and shifts of up to 3 beats so a repeat
@@ -287,7 +288,9 @@ def merge_units(
     """Join pairs of adjacent ``unit``-bar phrases into one ``2 * unit``-bar phrase.
 
     The halves of an 8-bar section often repeat a 4-bar pattern, or differ only in melody, and
-    the novelty sees a boundary between them. A pair of labels (X, Y) is joined when X == Y, or
+    the novelty sees a boundary between them. A pair of labels (X, Y) is joined when X == Y and
+    X never stands alone as a single unit inside the song (else ``A A`` are two 4-bar
+    sections), or
     when every unit-length X is followed by a Y and every unit-length Y preceded by an X (once
     or more often), and the two sound alike (mean timbre distance ``dt`` below
     ``PAIR_TIMBRE_THRESHOLD``: the same instruments, another melody or chord turn). Pair kinds are taken weakest internal boundary first (mean novelty at the
@@ -304,7 +307,19 @@ def merge_units(
     kinds = []
     dt_sum = diagonal_cumsum(dt) if dt is not None else None
     for (x, y), where in occ.items():
-        if x != y:
+        if x == y:
+            # A 4-bar unit that also stands alone inside the song (``A A B A B``) is a
+            # section of its own: its back-to-back repeats stay separate phrases. Only a unit
+            # that always comes doubled is half of an 8-bar section. The first and last
+            # phrases do not count: the song's edges cut sections short.
+            alone = [
+                i
+                for i in range(1, n - 1)
+                if labels[i] == x and is_unit[i] and labels[i - 1] != x and labels[i + 1] != x
+            ]
+            if alone:
+                continue
+        else:
             xs = [i for i in range(n) if labels[i] == x and is_unit[i]]
             ys = [i for i in range(n) if labels[i] == y and is_unit[i]]
             # Every X is followed by Y and every Y preceded by X (a one-off pair counts too).

@@ -5,6 +5,15 @@ disagree); the onset envelope's periodicity at the related metrical levels (x2, 
 is checked to say how sure that level is. A tracker can lock onto twice or half the felt tempo,
 or onto a dotted (3:2) pulse; the alternatives are reported with their evidence, and the
 confidence drops when another level is about as well supported.
+
+Tempo octave (:func:`dance_octave`): which of x1/2, x1, x2 of the tracked tempo a dancer would
+count as the beat. A log-normal dance-tempo prior centred on 112 BPM (``DANCE_PRIOR``: 90-140
+BPM lie within one standard deviation, 0.35 octave) is weighed against each level's pulse
+salience in the onset envelope; the decision and its confidence (the posterior of the chosen
+level) are reported (``TempoEstimate.octave``, and a ``tempo_octave`` warning when the decision
+is not the tracked level). The beats and bars stay on the tracked level: the dance bars are
+retimed to the music bars downstream, and whether 176 BPM is danced as 176 (salsa, 160-200) or
+as 88 depends on the dance library, not on the song alone.
 """
 
 from __future__ import annotations
@@ -14,8 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = [
+    "DANCE_PRIOR",
     "RELATIONS",
     "TempoEstimate",
+    "dance_octave",
     "estimate_tempo",
     "metrical_relation",
     "pulse_salience",
@@ -24,6 +35,8 @@ __all__ = [
 
 # metrical levels checked against the tracked tempo: name -> tempo ratio
 RELATIONS: dict[str, float] = {"x2": 2.0, "x1/2": 0.5, "x3/2": 1.5, "x2/3": 2.0 / 3.0}
+#: dance-tempo prior on the counted beat: log-normal, centre (BPM) and spread (octaves)
+DANCE_PRIOR = {"center_bpm": 112.0, "sigma_octaves": 0.35}
 
 
 @dataclass
@@ -31,7 +44,8 @@ class TempoEstimate:
     """Tempo in BPM (from the beat intervals), confidence in [0, 1], and the evidence.
 
     ``alternatives``: list of {relation, bpm, salience} for the related metrical levels;
-    ``salience`` of the tracked level is ``salience`` (onset autocorrelation, 0..1).
+    ``salience`` of the tracked level is ``salience`` (onset autocorrelation, 0..1);
+    ``octave``: the dance-tempo decision of :func:`dance_octave` ({relation, bpm, confidence}).
     """
 
     bpm: float
@@ -40,6 +54,7 @@ class TempoEstimate:
     salience: float
     alternatives: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    octave: dict = field(default_factory=dict)
 
 
 def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
@@ -94,6 +109,31 @@ def pulse_salience(onset_env: np.ndarray, fps: float, bpm: float) -> float:
     return max(best, 0.0)
 
 
+def dance_octave(bpm: float, salience: dict[str, float]) -> dict:
+    """The dance-tempo level among x1/2, x1 and x2 of ``bpm``: ``{relation, bpm, confidence}``.
+
+    ``salience``: pulse salience (0..1) per relation ('x1' required; 'x1/2', 'x2' if known).
+    Score of a level = log prior (:data:`DANCE_PRIOR`) + log salience relative to the best
+    level; confidence = the chosen level's share of the normalised posterior.
+    """
+    if bpm <= 0:
+        return {"relation": "x1", "bpm": 0.0, "confidence": 0.0}
+    c, sd = np.log2(DANCE_PRIOR["center_bpm"]), DANCE_PRIOR["sigma_octaves"]
+    top = max(max(salience.values()), 1e-6)
+    names, scores = [], []
+    for name, ratio in (("x1/2", 0.5), ("x1", 1.0), ("x2", 2.0)):
+        if name not in salience:
+            continue
+        prior = -0.5 * ((np.log2(bpm * ratio) - c) / sd) ** 2
+        names.append(name)
+        scores.append(prior + np.log(max(salience[name], 1e-3 * top) / top))
+    post = np.exp(np.asarray(scores) - max(scores))
+    post /= post.sum()
+    k = int(np.argmax(post))
+    ratio = {"x1/2": 0.5, "x1": 1.0, "x2": 2.0}[names[k]]
+    return {"relation": names[k], "bpm": float(bpm * ratio), "confidence": float(post[k])}
+
+
 def estimate_tempo(
     beats: np.ndarray, onset_env: np.ndarray | None = None, fps: float = 50.0
 ) -> TempoEstimate:
@@ -130,5 +170,15 @@ def estimate_tempo(
         est.warnings.append(
             f"tempo_ambiguous: the onset pulse at {strongest['bpm']:.1f} BPM "
             f"({strongest['relation']} of {bpm:.1f}) is stronger than the tracked beat's"
+        )
+    sal = {"x1": est.salience} | {
+        a["relation"]: a["salience"] for a in est.alternatives if a["relation"] in ("x2", "x1/2")
+    }
+    est.octave = dance_octave(bpm, sal)
+    if est.octave["relation"] != "x1":
+        est.warnings.append(
+            f"tempo_octave: a dancer would likely count {est.octave['bpm']:.1f} BPM "
+            f"({est.octave['relation']} of the tracked {bpm:.1f}; confidence "
+            f"{est.octave['confidence']:.2f}); beats and bars stay on the tracked level"
         )
     return est

@@ -19,8 +19,9 @@ from dancegraph import __version__
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 from services.api import metrics, problems
-from services.api.routers import batches, datasets, health, jobs
+from services.api.routers import batches, datasets, health, jobs, preview
 from services.config import Settings, get_settings
+from services.preview_server import static_router
 
 log = logging.getLogger("dancegraph.api")
 
@@ -37,6 +38,7 @@ offending `field`; a failed job carries the same codes in `error`:
 | status | code | when |
 |---|---|---|
 | 401 | `auth_missing`, `auth_invalid` | no or unknown API key |
+| 401 | `preview_token_invalid`, `preview_token_expired` | a preview link's `?token=` |
 | 404 | `job_not_found`, `batch_not_found`, `unknown_dataset`, `result_not_found` | no such thing (for you) |
 | 409 | `idempotency_key_reused`, `job_finished`, `job_not_finished`, `job_failed`, `job_cancelled` | state conflicts |
 | 413 | `upload_too_large`, `spec_too_large` | over the size limit (checked while streaming) |
@@ -45,6 +47,7 @@ offending `field`; a failed job carries the same codes in `error`:
 | 422 | `spec_malformed`, `spec_invalid`, `spec_unknown_field`, `unknown_dataset` | the spec part |
 | 422 | `request_invalid`, `cursor_invalid`, `batch_too_large` | query, headers, batch size |
 | 503 | `queue_unavailable` | the broker is down; nothing was kept |
+| 503 | `preview_not_built` | the preview page's front end is not built on this server |
 
 Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`."""
 
@@ -122,6 +125,7 @@ def create_app(
         lifespan=lifespan,
         openapi_tags=[
             {"name": "jobs", "description": "one song → dance alternatives"},
+            {"name": "preview", "description": "watch a job's dance on its song in the browser"},
             {"name": "batches", "description": "many songs, one spec"},
             {"name": "datasets", "description": "motion libraries with built graphs"},
             {"name": "health", "description": "liveness, readiness, metrics"},
@@ -129,8 +133,9 @@ def create_app(
     )
     app.state.ctx = ctx
     problems.install(app)
-    for module in (jobs, batches, datasets, health):
+    for module in (jobs, preview, batches, datasets, health):
         app.include_router(module.router)
+    app.include_router(static_router)
 
     @app.middleware("http")
     async def _observe(request: Request, call_next):

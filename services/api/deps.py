@@ -1,16 +1,18 @@
 """Request dependencies in one place: settings, database session, object store, graph store,
-the calling tenant (API key), and the enqueue function."""
+the calling tenant (API key, or a preview token on the preview routes), and the enqueue
+function."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 
-from fastapi import Depends, Request, Security
+from fastapi import Depends, Query, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from dancegraph.store import ObjectStore
 from services import jobs
+from services.api.preview_tokens import check_token
 from services.api.problems import ApiError
 from services.config import Settings
 from services.db import get_sessionmaker
@@ -38,13 +40,16 @@ def get_store(request: Request) -> ObjectStore:
     return request.app.state.ctx.store
 
 
-def get_tenant(
+def get_api_key(
     api_key: str | None = Security(_api_key_header),
     bearer: HTTPAuthorizationCredentials | None = Security(_bearer),
-    db: Session = Depends(get_db),
-) -> Tenant:
+) -> str | None:
+    """The request's API key (``X-API-Key`` or ``Authorization: Bearer``), or None."""
+    return api_key or (bearer.credentials if bearer is not None else None)
+
+
+def get_tenant(key: str | None = Depends(get_api_key), db: Session = Depends(get_db)) -> Tenant:
     """The tenant owning the request's API key; 401 when the key is missing or unknown."""
-    key = api_key or (bearer.credentials if bearer is not None else None)
     challenge = {"WWW-Authenticate": 'Bearer realm="dancegraph"'}
     if not key:
         raise ApiError(
@@ -64,6 +69,27 @@ def get_tenant(
             headers=challenge,
         )
     return tenant
+
+
+def get_tenant_or_preview_token(
+    job_id: str,
+    token: str | None = Query(
+        None,
+        max_length=200,
+        description="signed preview token from the job's preview_url (instead of an API key)",
+    ),
+    key: str | None = Depends(get_api_key),
+    db: Session = Depends(get_db),
+    settings: Settings = Depends(get_settings_dep),
+) -> Tenant | None:
+    """Auth of the preview routes: the tenant when the request carries an API key (401 as
+    ``get_tenant``), else None once ``token`` is checked to be a valid preview token for
+    ``job_id`` (401 ``preview_token_invalid`` / ``preview_token_expired``;
+    ``services.api.preview_tokens``). Neither key nor token: 401 ``auth_missing``."""
+    if key or not token:
+        return get_tenant(key, db)
+    check_token(settings, job_id, token)
+    return None
 
 
 def get_enqueue(request: Request):

@@ -65,6 +65,9 @@ class JobOut(BaseModel):
     alternatives: list[AlternativeOut] = Field(default_factory=list)
     constraint_report: Any | None = None
     timeline_url: str | None = None
+    preview_url: str | None = Field(
+        None, description="the preview page, with a signed token (open it in a browser)"
+    )
     error: ErrorOut | None = None
     webhook: WebhookOut | None = None
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import Counter
 
+from services.api.preview_tokens import make_token
 from services.api.schemas import AlternativeOut, AudioOut, BatchOut, ErrorOut, JobOut, WebhookOut
 from services.config import Settings
 from services.models import FINAL_STATUSES, QUEUED, SUCCEEDED, WEBHOOK_NONE, Batch, Job
@@ -81,6 +82,9 @@ def job_out(settings: Settings, job: Job) -> JobOut:
         alternatives=_alternatives(settings, job),
         constraint_report=result.get("constraint_report") or result.get("report"),
         timeline_url=job_url(settings, job.id, "/timeline.json") if has_timeline else None,
+        preview_url=job_url(settings, job.id, f"/preview?token={make_token(settings, job.id)}")
+        if has_timeline
+        else None,
         error=error,
         webhook=webhook,
     )

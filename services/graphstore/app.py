@@ -22,6 +22,9 @@ Endpoints:
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
 import numpy as np
 from fastapi import Body, FastAPI
 from fastapi.responses import JSONResponse
@@ -30,15 +33,27 @@ from dancegraph import __version__
 from dancegraph.paths import store_dir
 from dancegraph.store import ObjectStore
 from services.api.problems import install as install_problem_handlers
+from services.config import get_settings
 from services.graphstore.client import LocalGraphStore
 
 
-def create_app(store: ObjectStore | None = None) -> FastAPI:
-    """The graph-store app over ``store`` (default: the embedded object store, opened lazily)."""
+def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastAPI:
+    """The graph-store app over ``store`` (default: the embedded object store, opened lazily).
+    ``warm_up``: compile the search kernel at start-up (the served app does)."""
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        if warm_up:
+            from dancegraph import jit
+
+            jit.warm_up(music=False)
+        yield
+
     app = FastAPI(
         title="DanceGraph graph store",
         version=__version__,
         description="Prebuilt motion graphs per dataset: search, node and clip data.",
+        lifespan=lifespan,
     )
     install_problem_handlers(app)
     state: dict[str, LocalGraphStore] = {}
@@ -106,4 +121,4 @@ def _jsonable(obj):
     return obj
 
 
-app = create_app()
+app = create_app(warm_up=get_settings().warm_up)

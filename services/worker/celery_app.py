@@ -127,6 +127,22 @@ def _setup_logging(**_kwargs) -> None:
     logs.configure(os.environ.get("DANCEGRAPH_LOG_LEVEL", "INFO"), json_logs=settings.log_json)
 
 
+@signals.worker_init.connect
+def _warm_up(**_kwargs) -> None:
+    # In the main worker process, before the pool forks: children inherit the compiled kernels,
+    # and only this process writes numba's cache (under its lock; see dancegraph.jit).
+    if get_settings().warm_up:
+        from dancegraph import jit
+
+        log = logging.getLogger("dancegraph.worker")
+        try:
+            jit.warm_up()
+        except Exception:  # a job still compiles on demand; the log says why start-up was slow
+            log.exception("kernel warm-up failed")
+        else:
+            log.info("kernels warm")
+
+
 @signals.worker_process_init.connect
 def _after_fork(**_kwargs) -> None:
     # A forked pool child must not share the parent's database connections.

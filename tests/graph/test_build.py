@@ -175,7 +175,12 @@ def test_dataset_build_cli_prints_counts_and_stores_a_version(demo_store, capsys
         assert word in out
     g = artifact.load_current(demo_store, "demo")
     ds = load_dataset(demo_store, "demo")
-    assert g.manifest["dataset"] == {"name": "demo", "version": ds.version, "licence": ds.licence}
+    assert g.manifest["dataset"] == {
+        "name": "demo",
+        "version": ds.version,
+        "licence": ds.licence,
+        "acknowledgement": ds.meta.get("acknowledgement"),
+    }
     assert g.manifest["params"]["threshold"] == 15.0
     assert [n for n, k in zip(g.node_ids, g.node_kind, strict=True) if k == 0] == ds.node_ids()
     assert f"nodes {g.n_nodes}" in out and f"edges {g.n_edges}" in out

@@ -84,6 +84,7 @@ def test_synthesize_writes_dance_files(setup, capsys):
         and prov["dataset"]["version"] == load_dataset(store, "demo").version
     )
     assert prov["dataset"]["licence"] and prov["graph"]["version"] == graph.version
+    assert "acknowledgement" in prov["dataset"]  # the dataset's credit line travels with results
     assert prov["spec"]["alternatives"] == 2 and prov["spec"]["seed"] == 1
     assert prov["audio"]["file"] == "song.wav" and len(prov["audio"]["sha256"]) == 64
     assert isinstance(timeline["constraints"], dict) and timeline["constraints"]

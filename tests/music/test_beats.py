@@ -13,11 +13,16 @@ import numpy as np
 import pytest
 
 from dancegraph.errors import AudioError
-from dancegraph.music import barpointer, beatnet
-from dancegraph.music.beats import beat_f_measure, track_beats
+from dancegraph.music import bargroup, barpointer, beatnet
+from dancegraph.music.beats import beat_f_measure, mend_half_beat_slips, track_beats
 from dancegraph.music.decode import load_audio
 from dancegraph.music.generator import generate, random_config
-from dancegraph.music.tempo import estimate_tempo, metrical_relation, tempo_from_beats
+from dancegraph.music.tempo import (
+    dance_octave,
+    estimate_tempo,
+    metrical_relation,
+    tempo_from_beats,
+)
 
 SR = 22050
 
@@ -60,6 +65,117 @@ def test_hard_cases_bar_phase_vote(seed: int, meter: int) -> None:
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
     assert any(w.startswith(("downbeat_rephased", "meter_regrouped")) for w in res.warnings)
     json.dumps(res.to_dict())  # evidence and warnings are JSON-able
+
+
+def test_waltz_counted_in_four_is_regrouped_by_bar_self_similarity() -> None:
+    """Hard 3/4 song (off-beat drums, syncopated bass, anticipated chords): the network counts
+    4 beats per bar; the music repeats every 3 beats, so the meter is 3 and the bars right."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(2015, hard=True)
+    assert song.truth["meter"] == 3
+    res = track_beats(song.y, song.sr)
+    assert res.meter == 3
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+    assert any(w.startswith("meter_regrouped: 4 -> 3") for w in res.warnings)
+
+
+def test_bar_phase_is_decided_section_by_section() -> None:
+    """Hard 3/4 song whose decoder slips a beat in a late section: the beat-level bar-pointer
+    on downbeat + harmony evidence puts the downbeats back (a global re-phase could not)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(2002, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert res.meter == 3
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_sections_tracked_on_the_off_beats_are_moved_back() -> None:
+    """Hard 4/4 song whose drumless sections have only a syncopated bass: BeatNet puts their
+    beats on the off-beats; the grid slips half a beat and back, librosa's beats agree with the
+    mended grid, and the beats and bars come right."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(2011, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_slip_mended") for w in res.warnings)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.85
+
+
+def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
+    period = 0.5
+    truth = np.arange(0.0, 60.0, period)
+    tracked = truth.copy()
+    tracked[40:72] += period / 2  # a section on the off-beats
+    # the decoder slides into and out of it over a few beats (its tempo changes only slowly)
+    tracked[36:40] += np.linspace(0.05, 0.2, 4)
+    tracked[72:76] += np.linspace(0.2, 0.05, 4)
+    mended, moved = mend_half_beat_slips(tracked, truth)
+    assert moved > 20
+    assert beat_f_measure(truth, mended) > 0.9 > 0.75 > beat_f_measure(truth, tracked)
+    inner = mended[(mended > truth[41] - 0.1) & (mended < truth[70] + 0.1)]
+    assert beat_f_measure(truth[41:71], inner) == 1.0  # the section itself is on the beat
+    assert np.all(np.abs(np.diff(mended) / period - 1) < 0.3)
+    same, moved = mend_half_beat_slips(tracked, tracked)  # the other tracker agrees: kept
+    assert moved == 0 and np.array_equal(same, tracked)
+    steady, moved = mend_half_beat_slips(truth, truth[::2])
+    assert moved == 0 and np.array_equal(steady, truth)
+
+
+def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
+    rng = np.random.default_rng(0)
+    n = 96
+    e = rng.normal(0, 0.3, n)
+    e[0:48:4] += 2.0  # first half: bars start on beat 0
+    e[50:96:4] += 2.0  # second half: two beats later (an inserted 2-beat measure)
+    e[24] -= 2.0  # one bar with no downbeat evidence at all
+    e[26] += 2.0  # ... and a stray accent
+    pos = bargroup.phase_viterbi(e, 4)
+    assert np.all(pos[0:48:4] == 1) and np.all(pos[50:96:4] == 1)
+    assert pos[26] != 1
+    assert set(np.unique(pos)) == {1, 2, 3, 4}
+
+
+def test_bar_count_restarts_cheaply_where_the_beat_grid_glitches() -> None:
+    """A tracker that drops a beat puts every later bar one beat off; 7 bars of downbeat
+    evidence after the drop are too few for an ordinary restart (10 nats), but a glitch of the
+    grid makes the restart cheap there, so the bars after it come right at once."""
+    rng = np.random.default_rng(1)
+    true_frames = np.arange(0, 25 * 96, 25)  # 120 BPM at 50 fps, 24 bars of 4
+    kept = np.r_[0:67, 68:96]  # beat 67 dropped (a glitch: one interval twice as long)
+    frames = true_frames[kept]
+    e = rng.normal(0.0, 0.2, len(kept))
+    e[kept % 4 == 0] += 1.0
+    glitch = bargroup.grid_glitches(frames)
+    assert glitch[66] and glitch[67] and not glitch[:60].any() and not glitch[75:].any()
+    for costs, after_ok in ((bargroup.restart_costs(frames), True), (bargroup.LOG_RESTART, False)):
+        pos = bargroup.phase_viterbi(e, 4, costs)
+        assert np.all(pos[:64][kept[:64] % 4 == 0] == 1)
+        assert bool(np.all(pos[70:][kept[70:] % 4 == 0] == 1)) is after_ok
+
+
+def test_hard_song_bars_recover_after_each_tracker_slip() -> None:
+    """Hard 3/4 song at 174 BPM, drumless with a syncopated bass: BeatNet slides off the beat
+    and back twice, each time losing a beat of the count; the bars restart at the glitches
+    (downbeat F 0.39 without it)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(2021, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert res.meter == 3
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.65
+
+
+def test_meter_distances_find_the_repeating_bar_length() -> None:
+    rng = np.random.default_rng(1)
+    for meter in (3, 4):
+        pattern = rng.normal(size=(meter, 8))
+        x = np.tile(pattern, (40, 1)) + rng.normal(0, 0.3, (40 * meter, 8))
+        d = bargroup.meter_distances(x)
+        assert d[meter] < d[7 - meter] - bargroup.METER_MARGIN
+    assert all(np.isnan(v) for v in bargroup.meter_distances(x[:10]).values())
 
 
 def test_quiet_input_is_tracked_like_the_original() -> None:
@@ -200,6 +316,26 @@ def test_tempo_flags_a_competing_dotted_pulse() -> None:
     env2[::25] = 1.0  # the tracked pulse itself
     est2 = estimate_tempo(beats, env2, fps)
     assert est2.confidence > 0.9 and not est2.warnings
+
+
+def test_tempo_octave_decision_with_a_dance_prior() -> None:
+    """Equal pulse evidence at every level: the prior picks the level nearest 112 BPM; a much
+    stronger pulse at the tracked level keeps it; the decision is reported, beats unchanged."""
+    flat = {"x1/2": 0.3, "x1": 0.3, "x2": 0.3}
+    assert dance_octave(176.0, flat)["relation"] == "x1/2"
+    assert dance_octave(176.0, flat)["bpm"] == pytest.approx(88.0)
+    assert dance_octave(60.0, flat)["relation"] == "x2"
+    mid = dance_octave(120.0, flat)
+    assert mid["relation"] == "x1" and mid["confidence"] > 0.9
+    assert dance_octave(176.0, {"x1/2": 0.05, "x1": 0.5, "x2": 0.3})["relation"] == "x1"
+    assert 0.5 < dance_octave(176.0, flat)["confidence"] < dance_octave(60.0, flat)["confidence"]
+    fps = 50.0
+    env = np.zeros(6000)
+    env[::17] = 1.0  # a pulse at 176.5 BPM
+    beats = np.arange(0, 110, 17 / fps)
+    est = estimate_tempo(beats, env, fps)
+    assert est.octave["relation"] == "x1/2" and abs(est.bpm - 176.5) < 0.5
+    assert any(w.startswith("tempo_octave") for w in est.warnings)
 
 
 # --- no beat ---------------------------------------------------------------------------------

@@ -57,6 +57,30 @@ def test_eight_bar_sections_are_not_split_in_half():
     assert [p["start_bar"] for p in st.phrases] == [0, 8, 16, 24]
 
 
+def test_back_to_back_repeats_of_a_four_bar_section_stay_apart():
+    """intro A A B A B outro with 4-bar sections: A also stands alone, so the first two A's
+    are two phrases with one label, not one 8-bar phrase; a unit that always comes doubled
+    (A A B A A B) is still one 8-bar section."""
+    form = ["intro", "A", "A", "B", "A", "B", "outro"]
+    song = generate_song(0, meter=4, tempo_bpm=128, form=form, section_bars=dict.fromkeys(form, 4))
+    bars, _ = bar_grid(song.truth)
+    st = analyze_structure(frame_features(song.y, song.sr), bars, unit=4)
+    assert [p["start_bar"] for p in st.phrases] == [s["start_bar"] for s in song.truth["sections"]]
+    labels = [p["label"] for p in st.phrases]
+    assert labels[1] == labels[2] == labels[4] and labels[3] == labels[5]
+    assert [p["occurrence"] for p in st.phrases][1:3] == [0, 1]
+    doubled = generate_song(
+        0,
+        meter=4,
+        tempo_bpm=128,
+        form=["A", "A", "B", "A", "A", "B"],
+        section_bars={"A": 4, "B": 8},
+    )
+    bars, _ = bar_grid(doubled.truth)
+    st = analyze_structure(frame_features(doubled.y, doubled.sr), bars, unit=4)
+    assert [p["start_bar"] for p in st.phrases] == [0, 8, 16, 24]
+
+
 def test_three_four_uses_three_bar_units():
     # 3/4: 4 measures = 3 four-beat bars; sections of 4 measures.
     song = generate_song(

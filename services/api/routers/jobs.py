@@ -224,7 +224,12 @@ def cancel_job(
 
 
 def _finished_job(db: Session, tenant: Tenant, job_id: str):
-    job = jobs.get_job_for_tenant(db, tenant.id, job_id)
+    return require_succeeded(jobs.get_job_for_tenant(db, tenant.id, job_id))
+
+
+def require_succeeded(job):
+    """The job itself when it succeeded; 409 (job_failed, job_cancelled, job_not_finished) else."""
+    job_id = job.id
     if job.status != SUCCEEDED:
         code = {"failed": "job_failed", "cancelled": "job_cancelled"}.get(
             job.status, "job_not_finished"

@@ -1,0 +1,628 @@
+"""Evaluation harness: ChoreoMaster's Table 3 on our own graph, songs and metrics.
+
+For every song the harness dances the rows below and scores each dance with ``dancegraph.metrics``
+(every dance rendered and measured at 60 fps, the rate the published beat scores assume):
+
+- ``real``: the library's own dances (ground truth): takes from the start, cut to the song's
+  length, scored against the take's own beats where the dataset has annotated ones, else against
+  the song's;
+- ``random_walk``: a beat-synchronous random walk on the graph (a uniformly random out-edge per
+  music bar, from a random original bar);
+- ``clip_concat``: tempo-matched clip concatenation: runs of 8 consecutive original bars of random
+  takes, each bar time-warped onto its music bar;
+- ``ours``: the graph search with the spec;
+- ``no_style`` / ``no_rhythm`` / ``no_structure``: the search without the style term, without
+  the rhythm term, without the repeat/mirror constraints.
+
+Each row dances ``spec.alternatives`` dances per song (takes, seeds or search alternatives).
+``metrics.json`` holds every dance's numbers, per-song means and the per-row aggregate (means
+over songs and alternatives, FID_k against the library, diversity); ``report.html`` is
+self-contained (inline PNG plots) with the table and, per song, the plots of our dance.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dancegraph.errors import DanceGraphError
+from dancegraph.eval import ROWS
+from dancegraph.graph.artifact import MotionGraph
+from dancegraph.metrics import beats as mbeats
+from dancegraph.metrics import diversity, kinetic, physical, smoothness, structure
+from dancegraph.motion.features import joint_speed, kinematic_beats
+from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.retime import resample
+from dancegraph.motion.skeleton import Motion
+from dancegraph.render import _plain
+from dancegraph.spec import Spec
+
+ROW_TITLES = {
+    "real": "Real library dances (ground truth)",
+    "random_walk": "Beat-synchronous random walk",
+    "clip_concat": "Tempo-matched clip concatenation",
+    "ours": "Ours (graph search)",
+    "no_style": "Ours without style term",
+    "no_rhythm": "Ours without rhythm term",
+    "no_structure": "Ours without structure constraints",
+    "result": "Scored result",
+}
+EVAL_FPS = 60.0
+FID_WINDOW_S = 5.0  # FID_k samples: non-overlapping windows of this length
+CONCAT_RUN_BARS = 8  # bars per clip in the clip-concatenation baseline
+#: Scalar metrics of one dance, in table order, with their column titles.
+SCALARS: dict[str, str] = {
+    "beat_accuracy": "Beat acc.",
+    "bas_bailando": "BAS (Bailando)",
+    "bas_fact": "BAS (FACT)",
+    "seam_flagged_share": "Seams > p99",
+    "seam_median_percentile": "Seam pct. (median)",
+    "skate_speed_m_s": "Skate m/s",
+    "repeat_share": "Repeat ok",
+    "mirror_share": "Mirror ok",
+    "controls_share": "Controls ok",
+    "signature_chi2": "Signature χ²",
+    "stage_inside_share": "On stage",
+}
+AGGREGATES: dict[str, str] = {
+    "fid_k": "FID_k",
+    "div_alternatives": "Div. alts",
+    "div_paths": "Bars differ (alts)",
+    "div_songs": "Div. songs",
+}
+
+
+class EvalError(DanceGraphError):
+    """An evaluation that cannot run (codes eval_*)."""
+
+    code = "eval_failed"
+
+
+# --------------------------------------------------------------------------------------------
+# the library: reference distributions
+
+
+@dataclass
+class Library:
+    """The graph plus what the metrics compare against, from the dataset's real takes at 60 fps:
+    the frame-to-frame reference of seam smoothness and the kinetic features of FID_k."""
+
+    graph: MotionGraph
+    dataset: object | None
+    seams: smoothness.Reference | None
+    kinetic_windows: np.ndarray | None  # (N, 72) raw features of the takes' windows
+    norm: tuple[np.ndarray, np.ndarray] | None
+    _takes: dict = field(default_factory=dict, repr=False)
+
+    def take(self, clip: str) -> Motion:
+        """A take at 60 fps (cached)."""
+        if clip not in self._takes:
+            self._takes[clip] = resample(self.dataset.motion(clip), EVAL_FPS)
+        return self._takes[clip]
+
+
+def load_library(graph: MotionGraph, dataset=None) -> Library:
+    """Reference distributions from ``dataset``'s takes (a ``motion.dataset.Dataset``); without a
+    dataset, seam smoothness and FID_k are not measured."""
+    if dataset is None:
+        return Library(graph, None, None, None, None)
+    lib = Library(graph, dataset, None, None, None)
+    positions, windows = [], []
+    for clip in dataset.clips:
+        motion = lib.take(clip.id)
+        pos, world = forward_kinematics(motion)
+        positions.append(pos)
+        smpl = kinetic.smpl_positions(motion.skeleton, pos, world)
+        windows.append(kinetic.window_features(smpl, EVAL_FPS, FID_WINDOW_S))
+    lib.seams = smoothness.Reference.from_takes(positions, EVAL_FPS)
+    lib.kinetic_windows = np.concatenate(windows)
+    lib.norm = kinetic.normaliser(lib.kinetic_windows)
+    return lib
+
+
+# --------------------------------------------------------------------------------------------
+# one dance
+
+
+@dataclass
+class Song:
+    """A song to dance: its analysis, its tracker beats and librosa's percussive beats (s)."""
+
+    name: str
+    analysis: object
+    beats: np.ndarray
+    librosa_beats: np.ndarray
+
+
+@dataclass
+class Dance:
+    """One scored dance: the flat ``metrics`` and what the report and aggregates need."""
+
+    metrics: dict
+    windows: np.ndarray  # (W, 72) kinetic features of its windows
+    features: np.ndarray  # (72,) kinetic features of the whole dance
+    nodes: np.ndarray | None
+    plot: dict
+
+
+def score_dance(
+    lib: Library,
+    motion: Motion,
+    spec: Spec,
+    *,
+    span: tuple[float, float],
+    tracker_beats: np.ndarray,
+    music_beats: np.ndarray,
+    bars: np.ndarray | None = None,
+    nodes: np.ndarray | None = None,
+    tags: list[dict] | None = None,
+    seams=None,
+) -> Dance:
+    """Every metric of one dance ``motion`` (60 fps, frame 0 = t 0 of the song).
+
+    ``span`` (s): where the dance moves (beats outside it are not counted); ``tracker_beats``
+    (our beat tracker's, for beat accuracy) and ``music_beats`` (librosa percussive, for the
+    Beat Align Scores) in seconds. ``bars (T, 2)``, ``nodes (T,)`` and ``tags``: the path on
+    the music bars, when there is one (structure, controls); ``seams``: frames where bars meet.
+    """
+    if abs(motion.fps - EVAL_FPS) > 1e-6:
+        raise ValueError(f"score_dance needs {EVAL_FPS} fps, got {motion.fps}")
+    fps = motion.fps
+    pos, world = forward_kinematics(motion)
+    a, b = span
+    kin = kinematic_beats(pos, fps)
+    m: dict = {
+        "beat_accuracy": mbeats.beat_accuracy(
+            mbeats.within(tracker_beats, a, b), mbeats.within(kin, a, b)
+        )
+    }
+    for variant in ("bailando", "fact"):
+        m[f"bas_{variant}"] = mbeats.beat_align_score(
+            mbeats.within(music_beats, a, b),
+            mbeats.within(mbeats.motion_beats(pos, fps, variant), a, b),
+            variant,
+        )
+    if seams is not None and lib.seams is not None:
+        rep = smoothness.seam_report(pos, fps, seams, lib.seams)
+        m["seam_flagged_share"] = rep["flagged_share"]
+        m["seam_median_percentile"] = rep["median_percentile"]
+        m["seams"] = {k: v for k, v in rep.items() if k != "seams"}
+        m["seams"]["flagged_frames"] = [r["frame"] for r in rep["seams"] if r["flagged"]]
+    skate = physical.foot_skating(pos, world, motion.skeleton, fps)
+    m["skate_speed_m_s"] = skate["mean_speed_m_s"]
+    m["foot_skating"] = skate
+    root_xz = motion.root_positions[:, [0, 2]]
+    stage = physical.stage_report(root_xz, spec.stage)
+    if stage is not None:
+        m["stage_inside_share"] = stage["inside_share"]
+        m["stage"] = stage
+    if nodes is not None:
+        target = spec.signature.target if spec.signature is not None else "dataset"
+        sig = structure.signature_distance(lib.graph, nodes, target)
+        m["signature_chi2"] = sig["chi2"]
+    if nodes is not None and bars is not None and tags is not None and len(tags) == len(nodes):
+        st = structure.structure_satisfaction(nodes, tags, lib.graph.mirror_of)
+        m["repeat_share"] = st["repeat"]["share"]
+        m["mirror_share"] = st["mirror"]["share"]
+        m["structure"] = st
+        ctl = structure.control_satisfaction(lib.graph, spec, bars, nodes, root_xz, fps)
+        m["controls_share"] = ctl["share"]
+        m["controls"] = ctl
+    lo, hi = int(round(a * fps)), max(int(round(b * fps)), int(round(a * fps)) + 3)
+    smpl = kinetic.smpl_positions(motion.skeleton, pos, world)[lo:hi]
+    plot = {
+        "kinematic_beats": kin,
+        "speed": joint_speed(pos, fps, 0.03),
+        "fps": fps,
+        "signature": sig if nodes is not None else None,
+        "node_ids": lib.graph.node_ids if nodes is not None else None,
+    }
+    return Dance(
+        metrics=m,
+        windows=kinetic.window_features(smpl, fps, FID_WINDOW_S),
+        features=kinetic.kinetic_features(smpl, fps),
+        nodes=None if nodes is None else np.asarray(nodes),
+        plot=plot,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the rows
+
+
+def row_spec(spec: Spec, row: str) -> Spec:
+    """The spec a search row runs with (ablations switch one term off)."""
+    data = spec.model_dump()
+    if row == "no_style":
+        data["weights"]["style"] = 0.0
+    elif row == "no_rhythm":
+        data["weights"]["rhythm"] = 0.0
+    elif row == "no_structure":
+        data["structure"] = {"repeat": False, "mirror": False}
+    return Spec.model_validate(data)
+
+
+def _originals(graph: MotionGraph) -> dict[tuple[int, int], int]:
+    """(clip index, bar) → node index of every original bar."""
+    kind = np.asarray(graph.node_kind)
+    clip, bar = np.asarray(graph.node_clip), np.asarray(graph.node_bar)
+    return {(int(clip[i]), int(bar[i])): i for i in np.nonzero(kind == 0)[0]}
+
+
+def random_walk(graph: MotionGraph, n_bars: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n_bars,)`` nodes: a random original bar, then a uniformly random out-edge per bar (a
+    random original bar again where a node has none)."""
+    originals = np.nonzero(np.asarray(graph.node_kind) == 0)[0]
+    path = [int(rng.choice(originals))]
+    while len(path) < n_bars:
+        targets, _ = graph.out_edges(path[-1])
+        path.append(int(rng.choice(targets)) if len(targets) else int(rng.choice(originals)))
+    return np.asarray(path, dtype=np.int64)
+
+
+def clip_concatenation(graph: MotionGraph, n_bars: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n_bars,)`` nodes: runs of ``CONCAT_RUN_BARS`` consecutive original bars of random takes
+    (shorter where a take ends)."""
+    table = _originals(graph)
+    by_clip: dict[int, list[int]] = {}
+    for c, b in table:
+        by_clip.setdefault(c, []).append(b)
+    clips = sorted(by_clip)
+    path: list[int] = []
+    while len(path) < n_bars:
+        c = clips[int(rng.integers(len(clips)))]
+        bars = sorted(by_clip[c])
+        start = int(rng.integers(len(bars)))
+        for b in bars[start : start + CONCAT_RUN_BARS]:
+            if (c, b) not in table or len(path) >= n_bars:
+                break
+            path.append(table[(c, b)])
+    return np.asarray(path, dtype=np.int64)
+
+
+def _search_paths(graph: MotionGraph, analysis, spec: Spec) -> list[dict]:
+    from dancegraph.graph.search import search
+
+    found = search(graph, analysis, spec)
+    return [
+        {"nodes": np.asarray(a.index), "placements": a.placements, "per_bar": a.per_bar}
+        for a in found.alternatives
+    ]
+
+
+def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec):
+    from dancegraph.render import render_path
+
+    analysis = song.analysis
+    ids = [lib.graph.node_ids[int(n)] for n in nodes]
+    return render_path(
+        lib.graph,
+        ids,
+        analysis.bars,
+        EVAL_FPS,
+        duration_s=float(analysis.duration_s),
+        placements=placements,
+        foot_cleanup=spec.output.foot_cleanup,
+    )
+
+
+def _real_dances(lib: Library, song: Song, spec: Spec, song_no: int) -> list[Dance]:
+    if lib.dataset is None:
+        return []
+    clips = sorted(lib.dataset.clips, key=lambda c: c.id)
+    graph = lib.graph
+    out = []
+    n = spec.alternatives
+    for k in range(n):
+        clip = clips[(song_no * n + k) % len(clips)]
+        take = lib.take(clip.id)
+        cut = min(take.n_frames, int(round(song.analysis.duration_s * EVAL_FPS)))
+        motion = take.slice(0, cut)
+        own = clip.beat_source == "annotation"
+        beats = lib.dataset.beats(clip.id) if own else song.beats
+        music = beats if own else song.librosa_beats
+        # the take's original bars that start inside the cut, for its motif signature
+        bars = [b for b in lib.dataset.bars if b.clip_id == clip.id and b.start_s < cut / EVAL_FPS]
+        nodes = np.array(
+            [graph.node_index(b.node_id) for b in bars if graph.has_node(b.node_id)],
+            dtype=np.int64,
+        )
+        d = score_dance(
+            lib,
+            motion,
+            spec,
+            span=(0.0, cut / EVAL_FPS),
+            tracker_beats=beats,
+            music_beats=music,
+            nodes=nodes if nodes.size else None,
+        )
+        d.metrics["take"] = clip.id
+        out.append(d)
+    return out
+
+
+def _row_dances(lib: Library, song: Song, spec: Spec, row: str, song_no: int) -> list[Dance]:
+    analysis = song.analysis
+    n_bars = len(analysis.bars)
+    if row == "real":
+        return _real_dances(lib, song, spec, song_no)
+    if row in ("random_walk", "clip_concat"):
+        make = random_walk if row == "random_walk" else clip_concatenation
+        paths = []
+        for k in range(spec.alternatives):
+            rng = np.random.default_rng([spec.seed, song_no, k, ROWS.index(row)])
+            paths.append({"nodes": make(lib.graph, n_bars, rng), "placements": None})
+    else:
+        paths = _search_paths(lib.graph, analysis, row_spec(spec, row))
+    span = (float(analysis.bars[0][0]), float(analysis.bars[-1][1]))
+    out = []
+    for p in paths:
+        motion, report = _render(lib, song, p["nodes"], p["placements"], spec)
+        d = score_dance(
+            lib,
+            motion,
+            spec,
+            span=span,
+            tracker_beats=song.beats,
+            music_beats=song.librosa_beats,
+            bars=np.asarray(analysis.bars),
+            nodes=p["nodes"],
+            tags=list(analysis.tags),
+            seams=report["seams"],
+        )
+        d.plot["per_bar"] = p.get("per_bar")
+        out.append(d)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# aggregation
+
+
+def _mean(values) -> float | None:
+    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return float(np.mean(vals)) if vals else None
+
+
+def _norm(lib: Library, f: np.ndarray) -> np.ndarray:
+    if lib.norm is None:
+        return f
+    mu, sd = lib.norm
+    return (f - mu) / sd
+
+
+def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
+    """Per row: the mean of every scalar over songs and alternatives, FID_k of the row's windows
+    against the library's, feature and path diversity among alternatives (mean over songs) and
+    feature diversity across songs (first dance of each song)."""
+    table = {}
+    for row in rows:
+        dances = [d for song in per_song for d in song.get(row, [])]
+        entry: dict = {"dances": len(dances)}
+        for key in SCALARS:
+            entry[key] = _mean(d.metrics.get(key) for d in dances)
+        windows = [d.windows for d in dances if len(d.windows)]
+        entry["fid_k"] = None
+        if lib.kinetic_windows is not None and windows:
+            gen = np.concatenate(windows)
+            if len(gen) >= 2:
+                entry["fid_k"] = kinetic.frechet_distance(
+                    _norm(lib, gen), _norm(lib, lib.kinetic_windows)
+                )
+        entry["div_alternatives"] = _mean(
+            diversity.feature_diversity(np.stack([_norm(lib, d.features) for d in song[row]]))
+            for song in per_song
+            if len(song.get(row, [])) > 1
+        )
+        entry["div_paths"] = _mean(
+            diversity.path_diversity([d.nodes for d in song[row]])
+            for song in per_song
+            if row not in ("real",) and len(song.get(row, [])) > 1
+        )
+        firsts = [_norm(lib, song[row][0].features) for song in per_song if song.get(row)]
+        entry["div_songs"] = diversity.feature_diversity(np.stack(firsts)) if firsts else None
+        table[row] = entry
+    return table
+
+
+# --------------------------------------------------------------------------------------------
+# entry points
+
+
+def load_song(path: str | Path, analysis=None) -> Song:
+    """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats."""
+    from dancegraph.music.analysis import analyze
+    from dancegraph.music.decode import load_audio
+
+    analysis = analysis if analysis is not None else analyze(path)
+    y, sr = load_audio(path, sr=22050)
+    return Song(
+        name=Path(path).name,
+        analysis=analysis,
+        beats=np.asarray(analysis.beats, dtype=float),
+        librosa_beats=mbeats.librosa_beats(y, sr),
+    )
+
+
+def evaluate(
+    songs: list[Song],
+    lib: Library,
+    spec: Spec,
+    out_dir: str | Path,
+    rows: list[str] | None = None,
+    progress=None,
+) -> dict:
+    """Run ``rows`` (default all of ``ROWS``) on every song; write ``metrics.json`` and
+    ``report.html`` into ``out_dir``; return the metrics dict."""
+    t0 = time.perf_counter()
+    rows = list(rows or ROWS)
+    unknown = [r for r in rows if r not in ROWS]
+    if unknown:
+        raise EvalError(
+            f"unknown rows {', '.join(unknown)} (known: {', '.join(ROWS)})",
+            code="eval_unknown_row",
+            field="rows",
+        )
+    if not songs:
+        raise EvalError("no songs to evaluate", code="eval_no_songs", field="audio")
+    if "real" in rows and lib.dataset is None:
+        raise EvalError(
+            "the real-dance row needs the dataset's takes", code="eval_no_dataset", field="rows"
+        )
+    per_song: list[dict[str, list[Dance]]] = []
+    songs_out = []
+    for s, song in enumerate(songs):
+        dances: dict[str, list[Dance]] = {}
+        for row in rows:
+            if progress:
+                progress(song.name, row)
+            dances[row] = _row_dances(lib, song, spec, row, s)
+        per_song.append(dances)
+        songs_out.append(
+            {
+                "song": song.name,
+                "analysis": song.analysis.summary(),
+                "librosa_beats": len(song.librosa_beats),
+                "rows": {
+                    row: {
+                        "mean": {k: _mean(d.metrics.get(k) for d in ds) for k in SCALARS},
+                        "dances": [_plain(d.metrics) for d in ds],
+                    }
+                    for row, ds in dances.items()
+                },
+            }
+        )
+    table = aggregate(lib, per_song, rows)
+    metrics = {
+        "format": 1,
+        "graph": {"name": lib.graph.name, "version": lib.graph.version},
+        "spec": spec.model_dump(mode="json"),
+        "fps": EVAL_FPS,
+        "rows": _plain(table),
+        "songs": songs_out,
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    _write(out_dir, metrics, songs, per_song)
+    return metrics
+
+
+def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | None = None) -> dict:
+    """Score one existing synthesize/job result folder (``timeline.json`` + ``alternatives/*.bvh``)
+    against ``lib`` (the graph it was danced from); writes ``metrics.json`` and ``report.html``
+    into the folder. Music beats for the Beat Align Scores come from ``audio`` when given, else
+    from the timeline's bars (our tracker's beats, labelled so in the metrics)."""
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.music.analysis import MusicAnalysis
+
+    folder = Path(result_dir)
+    try:
+        timeline = json.loads((folder / "timeline.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise EvalError(
+            f"{folder}: no readable timeline.json ({exc})", code="eval_bad_result", field="result"
+        ) from None
+    spec = Spec.model_validate(timeline.get("provenance", {}).get("spec", {}))
+    bar_rows = timeline.get("bars", [])
+    bars = np.array([[b["start_s"], b["end_s"]] for b in bar_rows], dtype=float).reshape(-1, 2)
+    beats = np.array([t for b in bar_rows for t in b.get("beats", [])[:4]], dtype=float)
+    tags = [b.get("tag", {}) for b in bar_rows]
+    song_beats = beats
+    source = "timeline"
+    if audio is not None:
+        from dancegraph.music.decode import load_audio
+
+        y, sr = load_audio(audio, sr=22050)
+        song_beats = mbeats.librosa_beats(y, sr)
+        source = "librosa_percussive"
+    fps = float(timeline["fps"])
+    dances = []
+    for alt in timeline.get("alternatives", []):
+        bvh = alt.get("files", {}).get("bvh")
+        if bvh is None:
+            continue
+        motion = resample(read_bvh(folder / bvh), EVAL_FPS)
+        ids = [b["node"] for b in alt["bars"]]
+        missing = [n for n in ids if not lib.graph.has_node(n)]
+        if missing:
+            raise EvalError(
+                f"node {missing[0]} of the result is not in graph {lib.graph.name} "
+                f"{lib.graph.version}",
+                code="eval_graph_mismatch",
+                field="result",
+            )
+        nodes = np.array([lib.graph.node_index(n) for n in ids], dtype=np.int64)
+        seams = [int(round(s * EVAL_FPS / fps)) for s in alt.get("seams", [])]
+        d = score_dance(
+            lib,
+            motion,
+            spec,
+            span=(float(bars[0, 0]), float(bars[-1, 1])) if len(bars) else (0.0, 0.0),
+            tracker_beats=beats,
+            music_beats=song_beats,
+            bars=bars,
+            nodes=nodes,
+            tags=tags,
+            seams=seams,
+        )
+        d.plot["per_bar"] = [dict(b.get("cost", {}), node=b["node"]) for b in alt["bars"]]
+        dances.append(d)
+    if not dances:
+        raise EvalError(
+            f"{folder}: the result has no BVH alternatives to score",
+            code="eval_bad_result",
+            field="result",
+        )
+    analysis = MusicAnalysis(
+        duration_s=float(timeline["duration_s"]),
+        tempo_bpm=float(timeline["song"]["tempo_bpm"]),
+        tempo_confidence=float(timeline["song"]["tempo_confidence"]),
+        meter=int(timeline["song"]["meter"]),
+        beats=beats,
+        beat_positions=np.tile([1, 2, 3, 4], len(bars)),
+        downbeats=bars[:, 0],
+        bars=bars,
+        bar_beats=np.array([b.get("beats", [0] * 5) for b in bar_rows], dtype=float),
+        phrases=list(timeline.get("phrases", [])),
+        tags=tags,
+        signature_scores=np.zeros((len(bars), 13)),
+        signature_topk=np.zeros((len(bars), 3), dtype=int),
+        bar_onset_rms=np.zeros((len(bars), 2, 200)),
+        method=timeline["song"].get("method", ""),
+    )
+    song = Song(folder.name, analysis, beats, song_beats)
+    per_song = [{"result": dances}]
+    lib_rows = aggregate(lib, per_song, ["result"])
+    metrics = {
+        "format": 1,
+        "graph": {"name": lib.graph.name, "version": lib.graph.version},
+        "spec": spec.model_dump(mode="json"),
+        "fps": EVAL_FPS,
+        "music_beats": source,
+        "rows": _plain(lib_rows),
+        "songs": [
+            {
+                "song": folder.name,
+                "rows": {"result": {"dances": [_plain(d.metrics) for d in dances]}},
+            }
+        ],
+    }
+    _write(folder, metrics, [song], per_song, our_row="result")
+    return metrics
+
+
+# --------------------------------------------------------------------------------------------
+# output
+
+
+def _write(out_dir, metrics: dict, songs: list[Song], per_song, our_row: str = "ours") -> None:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    from dancegraph.eval.report import write_report
+
+    write_report(out / "report.html", metrics, songs, per_song, our_row)

@@ -1,0 +1,105 @@
+"""Seam smoothness: joint jumps and acceleration spikes at the seams of a stitched dance, judged
+against the library's own frame-to-frame distribution.
+
+A dance from the graph is bars laid end to end; a bad transition shows as a pop at the seam. Per
+frame the largest joint speed (m/s, from consecutive positions) and the largest joint
+acceleration (m/s², second differences) are taken; the library's real takes give the reference
+distribution of both. A seam scores the percentile of its value in that distribution and is
+flagged when either value lies above ``FLAG_PERCENTILE`` (a pop the library itself almost never
+shows). Positions ``(F, J, 3)`` are metres; compare dances and library at the same ``fps``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dancegraph.motion.stitch import frame_jumps
+
+#: Seams above this percentile of the library's frame-to-frame distribution are flagged.
+FLAG_PERCENTILE = 99.0
+
+
+def frame_signals(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame largest joint speed ``(F-1,)`` m/s (sample i: frames i → i+1) and largest joint
+    acceleration ``(F-2,)`` m/s² (sample i: centred on frame i+1) of ``positions (F, J, 3)``."""
+    pos = np.asarray(positions, dtype=float)
+    speed = frame_jumps(pos).max(axis=1) * fps if pos.shape[0] > 1 else np.zeros(0)
+    if pos.shape[0] > 2:
+        acc = np.linalg.norm(np.diff(pos, n=2, axis=0), axis=-1).max(axis=1) * fps * fps
+    else:
+        acc = np.zeros(0)
+    return speed, acc
+
+
+@dataclass
+class Reference:
+    """The library's sorted per-frame joint speeds and accelerations (``frame_signals``)."""
+
+    speed: np.ndarray
+    acc: np.ndarray
+    fps: float
+
+    @classmethod
+    def from_takes(cls, positions: list[np.ndarray], fps: float) -> Reference:
+        """Pool ``frame_signals`` of every take ``(F, J, 3)`` at ``fps``."""
+        parts = [frame_signals(p, fps) for p in positions]
+        return cls(
+            speed=np.sort(np.concatenate([s for s, _ in parts])),
+            acc=np.sort(np.concatenate([a for _, a in parts])),
+            fps=float(fps),
+        )
+
+    def percentile(self, value: float, kind: str) -> float:
+        """Percentile (0–100) of ``value`` in the library's ``kind`` ("speed" or "acc") values."""
+        ref = self.speed if kind == "speed" else self.acc
+        if ref.size == 0:
+            return 0.0
+        return float(100.0 * np.searchsorted(ref, value, side="left") / ref.size)
+
+
+def seam_report(positions: np.ndarray, fps: float, seams, reference: Reference) -> dict:
+    """Score every seam of ``positions (F, J, 3)``; ``seams``: frame indices where a new bar starts.
+
+    Per seam s: ``speed`` = the largest joint speed from frame s−1 to s (m/s), ``acc`` = the
+    largest joint acceleration centred on s−1 or s (m/s²), their percentiles in ``reference``,
+    and ``flagged`` when either percentile exceeds ``FLAG_PERCENTILE``. Summary: ``count``,
+    ``flagged`` (count), ``flagged_share``, ``median_percentile`` (of the larger of the two
+    percentiles per seam), ``max_speed_m_s``, ``max_acc_m_s2``.
+    """
+    if abs(reference.fps - fps) > 1e-6:
+        raise ValueError(f"reference at {reference.fps} fps, dance at {fps} fps")
+    speed, acc = frame_signals(positions, fps)
+    rows = []
+    for s in sorted(int(x) for x in seams):
+        if s < 1 or s > speed.size:
+            continue
+        v = float(speed[s - 1])
+        window = acc[max(0, s - 2) : min(acc.size, s)]
+        a = float(window.max()) if window.size else 0.0
+        ps, pa = reference.percentile(v, "speed"), reference.percentile(a, "acc")
+        rows.append(
+            {
+                "frame": s,
+                "speed_m_s": v,
+                "acc_m_s2": a,
+                "speed_percentile": ps,
+                "acc_percentile": pa,
+                "flagged": bool(max(ps, pa) > FLAG_PERCENTILE),
+            }
+        )
+    flagged = sum(r["flagged"] for r in rows)
+    return {
+        "count": len(rows),
+        "flagged": flagged,
+        "flagged_share": flagged / len(rows) if rows else 0.0,
+        "median_percentile": (
+            float(np.median([max(r["speed_percentile"], r["acc_percentile"]) for r in rows]))
+            if rows
+            else None
+        ),
+        "max_speed_m_s": max((r["speed_m_s"] for r in rows), default=None),
+        "max_acc_m_s2": max((r["acc_m_s2"] for r in rows), default=None),
+        "seams": rows,
+    }

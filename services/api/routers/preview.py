@@ -1,0 +1,133 @@
+"""The preview page of a succeeded job and the data it loads (song, timeline, poses).
+
+Each route takes the job's API key (``X-API-Key`` / Bearer) like every other job route, or the
+signed ``?token=`` of the job's ``preview_url`` (``services.api.preview_tokens``): a browser
+opening a link cannot send a header (``services.api.deps.get_tenant_or_preview_token``). The
+page's data URLs always carry a fresh token. Pose tracks are computed once per BVH and kept
+under ``jobs/<id>/preview/`` (``services.preview_server.pose_json_gz``); the JSON routes answer
+gzip-encoded when the client accepts it.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Path, Request
+from fastapi.responses import FileResponse, HTMLResponse
+from sqlalchemy.orm import Session
+
+from dancegraph.errors import NotFoundError
+from dancegraph.render import TIMELINE
+from dancegraph.store import ObjectStore
+from services import jobs
+from services.api.deps import get_db, get_settings_dep, get_store, get_tenant_or_preview_token
+from services.api.preview_tokens import make_token
+from services.api.problems import ApiError
+from services.api.routers.jobs import PROBLEM, require_succeeded
+from services.api.views import job_url
+from services.config import Settings
+from services.models import Job, Tenant
+from services.preview_server import (
+    audio_media_type,
+    json_file_response,
+    json_response,
+    pose_json_gz,
+    render_page,
+)
+
+router = APIRouter(prefix="/v1/jobs", tags=["preview"])
+
+ERRORS = {401: PROBLEM, 404: PROBLEM, 409: PROBLEM}
+JSON_OK = {200: {"content": {"application/json": {}}}}
+
+
+def preview_job(
+    job_id: str,
+    tenant: Tenant | None = Depends(get_tenant_or_preview_token),
+    db: Session = Depends(get_db),
+) -> Job:
+    """The succeeded job: the tenant's (API key) or the one the preview token was made for."""
+    if tenant is not None:
+        return require_succeeded(jobs.get_job_for_tenant(db, tenant.id, job_id))
+    job = jobs.get_job(db, job_id) if jobs.is_id(job_id) else None
+    if job is None:
+        raise NotFoundError(f"no job {job_id!r}", code="job_not_found", field="job_id")
+    return require_succeeded(job)
+
+
+def pose_cache_prefix(job_id: str) -> str:
+    """Where a job's computed pose tracks are kept: next to its result, gone with it."""
+    return jobs.result_key(job_id, "preview")
+
+
+def _alternatives(store: ObjectStore, job: Job) -> int:
+    folder = store.path(jobs.result_key(job.id, "alternatives"))
+    return len(list(folder.glob("*.bvh"))) if folder.is_dir() else 0
+
+
+@router.get(
+    "/{job_id}/preview",
+    summary="Preview page: the dance on the song in the browser",
+    response_class=HTMLResponse,
+    responses={**ERRORS, 503: PROBLEM},
+)
+def preview_page(
+    job: Job = Depends(preview_job),
+    settings: Settings = Depends(get_settings_dep),
+    store: ObjectStore = Depends(get_store),
+):
+    n_alternatives = _alternatives(store, job)
+    if not n_alternatives:
+        raise ApiError(
+            404, "result_not_found", f"job {job.id} has no dance to show", field="job_id"
+        )
+    q = f"?token={make_token(settings, job.id)}"
+    base = job_url(settings, job.id, "/preview")
+    return render_page(
+        title=job.audio_filename or job.id,
+        audio=f"{base}/audio{q}",
+        timeline=f"{base}/timeline.json{q}",
+        poses=[f"{base}/poses/{k}.json{q}" for k in range(n_alternatives)],
+        assets=f"{settings.public_base_url}/preview-static",
+    )
+
+
+@router.get(
+    "/{job_id}/preview/audio",
+    summary="The job's song, for the preview page",
+    response_class=FileResponse,
+    responses={200: {"content": {"audio/*": {}}}, **ERRORS},
+)
+def preview_audio(job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)):
+    path = store.path(job.audio_key)
+    if not path.is_file():
+        raise ApiError(404, "result_not_found", f"job {job.id} has no stored song", field="job_id")
+    return FileResponse(path, media_type=audio_media_type(job.audio_format or job.audio_filename))
+
+
+@router.get(
+    "/{job_id}/preview/timeline.json",
+    summary="The timeline, for the preview page",
+    responses={**JSON_OK, **ERRORS},
+)
+def preview_timeline(
+    request: Request, job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)
+):
+    path = store.path(jobs.result_key(job.id, TIMELINE))
+    if not path.is_file():
+        raise ApiError(404, "result_not_found", f"job {job.id} has no timeline", field="job_id")
+    return json_file_response(request, path)
+
+
+@router.get(
+    "/{job_id}/preview/poses/{k}.json",
+    summary="World joint positions of alternative k per frame (dancegraph.preview.pose_track)",
+    responses={**JSON_OK, **ERRORS, 422: PROBLEM},
+)
+def preview_poses(
+    request: Request,
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    job: Job = Depends(preview_job),
+    store: ObjectStore = Depends(get_store),
+):
+    bvh = store.path(jobs.result_key(job.id, f"alternatives/{k}.bvh"))
+    gz = pose_json_gz(bvh, k, store, pose_cache_prefix(job.id))
+    return json_response(request, gz)

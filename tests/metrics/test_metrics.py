@@ -1,0 +1,198 @@
+"""Each metric on constructed cases with a known answer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dancegraph.graph import choreography
+from dancegraph.metrics import beats, diversity, kinetic, physical, smoothness, structure
+from dancegraph.motion.features import kinematic_beats
+from dancegraph.spec import Spec, Stage
+
+FPS = 60.0
+BEAT_FRAMES = 30  # 120 BPM at 60 fps
+
+
+def pulse(n_frames: int = 600, n_joints: int = 4) -> np.ndarray:
+    """``(F, J, 3)`` joints swinging along x with speed ∝ |sin(π i / 30)| between frames i and
+    i + 1: the speed dips to zero once per beat, at speed sample 30·k (reported at frame 30·k + 1)."""
+    i = np.arange(n_frames) - 0.5
+    x = 0.3 * np.cos(np.pi * i / BEAT_FRAMES)
+    pos = np.zeros((n_frames, n_joints, 3))
+    pos[:, :, 0] = x[:, None] * np.linspace(0.5, 1.5, n_joints)[None, :]
+    pos[:, :, 1] = 1.0 + 0.2 * np.arange(n_joints)[None, :]
+    return pos
+
+
+def test_beat_scores_on_beat_are_maximal_and_half_a_beat_off_is_low():
+    pos = pulse()
+    # the published code reports a minimum of speed sample i (frames i → i+1) at frame i + 1
+    on = (np.arange(1, 20) * BEAT_FRAMES + 1) / FPS
+    off = on + 0.5 * BEAT_FRAMES / FPS
+    for variant in ("bailando", "fact"):
+        mb = beats.motion_beats(pos, FPS, variant)
+        assert np.allclose(np.diff(mb), BEAT_FRAMES / FPS)  # one minimum per beat
+        assert beats.beat_align_score(on, mb, variant) == pytest.approx(1.0)
+        assert beats.beat_align_score(off, mb, variant) < 1e-3
+    kin = kinematic_beats(pos, FPS)
+    music = (np.arange(1, 20) * BEAT_FRAMES) / FPS
+    assert beats.beat_accuracy(music, kin) == 1.0
+    assert beats.beat_accuracy(music + 0.25, kin) == 0.0
+
+
+def test_beat_align_variants_average_over_different_sides():
+    music = np.array([1.0, 2.0, 3.0, 4.0])
+    dance = np.array([1.0])  # one motion beat, on a music beat
+    # Bailando averages over music beats: 1 of 4 matched; FACT over motion beats: 1 of 1
+    assert beats.beat_align_score(music, dance, "bailando") == pytest.approx(0.25)
+    assert beats.beat_align_score(music, dance, "fact") == pytest.approx(1.0)
+    assert beats.beat_align_score(music, [], "bailando") == 0.0
+    with pytest.raises(ValueError):
+        beats.beat_align_score(music, dance, "other")
+
+
+def test_librosa_beats_find_a_click_track():
+    sr = 22050
+    y = np.zeros(sr * 8, dtype=np.float32)
+    burst = np.random.default_rng(0).normal(size=2000) * np.exp(-np.arange(2000) / 300)
+    for t in np.arange(0.5, 7.5, 0.5):  # 120 BPM noise bursts: percussive
+        k = int(t * sr)
+        y[k : k + 2000] = 0.5 * burst
+    found = beats.librosa_beats(y, sr)
+    assert len(found) >= 10
+    assert np.median(np.diff(found)) == pytest.approx(0.5, abs=0.03)
+
+
+def test_seam_with_a_pop_is_flagged_and_a_smooth_one_is_not():
+    library = [pulse(900), pulse(700)]
+    ref = smoothness.Reference.from_takes(library, FPS)
+    dance = pulse(600)
+    dance[300:] += np.array([0.15, 0.0, 0.0])  # a 15 cm pop at frame 300
+    rep = smoothness.seam_report(dance, FPS, [150, 300], ref)
+    smooth, popped = rep["seams"]
+    assert popped["frame"] == 300 and popped["flagged"]
+    assert popped["speed_percentile"] == 100.0
+    assert not smooth["flagged"] and smooth["speed_percentile"] < 99.0
+    assert rep["flagged"] == 1 and rep["flagged_share"] == 0.5
+
+
+def test_structure_counts_satisfied_and_violated_pairs():
+    tags = [
+        {"label": "A", "occurrence": o, "index": i, "meter_id": m}
+        for o in (0, 1)
+        for i, m in enumerate((0, 1, 0))
+    ]
+    mirror_of = np.array([1, 0, 3, 2, 5, 4, 7, 6])
+    # repeat pairs (0,3) (1,4) (2,5); mirror pairs (0,2) (3,5) (same meter id in an occurrence)
+    nodes = np.array([0, 2, 1, 0, 6, 1])
+    st = structure.structure_satisfaction(nodes, tags, mirror_of)
+    assert st["repeat"] == {"pairs": 3, "satisfied": 2, "share": pytest.approx(2 / 3)}
+    assert st["mirror"] == {"pairs": 2, "satisfied": 2, "share": 1.0}
+    assert [v["bars"] for v in st["violated"]] == [[1, 4]]
+
+
+def test_stage_violation_is_counted():
+    stage = Stage(x=[-1.0, 1.0], z=[-1.0, 1.0])
+    xz = np.zeros((10, 2))
+    xz[7:, 0] = [1.5, 2.0, 0.5]  # two of ten frames outside, 1 m at most
+    rep = physical.stage_report(xz, stage)
+    assert rep["inside_share"] == pytest.approx(0.8)
+    assert rep["max_outside_m"] == pytest.approx(1.0)
+    assert physical.stage_report(xz, None) is None
+
+
+def test_chi_square_known_value():
+    a = np.array([0.5, 0.5, 0.0])
+    b = np.array([0.25, 0.25, 0.5])
+    # ½ [2 · 0.25² / 0.75 + 0.5² / 0.5] = ½ (1/6 + 1/2)
+    assert choreography.chi_square(a, b) == pytest.approx(1 / 3)
+
+
+def test_signature_distance_and_controls_on_the_demo_graph(demo_graph):
+    g = demo_graph
+    motif = np.asarray(g.motif)
+    k = int(motif.max()) + 1
+    node = int(np.nonzero(motif == motif[0])[0][0])
+    nodes = np.full(6, node)
+    sig = structure.signature_distance(g, nodes)
+    target = np.asarray(sig["target"])
+    one_hot = np.eye(k)[motif[0]]
+    assert sig["chi2"] == pytest.approx(choreography.chi_square(one_hot, target))
+    assert sig["histogram"] == one_hot.tolist()
+
+    bars = np.stack([np.arange(6) * 2.0, np.arange(6) * 2.0 + 2.0], axis=1)
+    other = int(np.nonzero(np.asarray(g.node_clip) != g.node_clip[node])[0][0])
+    spec = Spec.model_validate(
+        {
+            "include": [{"node": g.node_ids[node], "bars": [0, 2]}],
+            "exclude": [{"node": g.node_ids[other]}],
+            "stage": {"x": [-1, 1], "z": [-1, 1]},
+            "waypoints": [{"second": 5.0, "position": [0.0, 0.0], "tolerance": 0.5}],
+            "motifs": [{"bar": 1, "motif": int(motif[node])}],
+            "signature": {"target": "dataset"},
+        }
+    )
+    xz = np.zeros((12 * 60, 2))
+    xz[-10:, 0] = 3.0  # leaves the stage at the end
+    ctl = structure.control_satisfaction(g, spec, bars, nodes, xz, 60.0)
+    ok = {it["control"]: it["satisfied"] for it in ctl["items"]}
+    assert ok == {
+        "include[0]": True,
+        "exclude[0]": True,
+        "waypoints[0]": True,
+        "stage": False,
+        "motifs[0]": True,
+        "signature": None,  # a soft target: measured, not passed or failed
+    }
+    assert ctl["items"][-1]["chi2"] == pytest.approx(sig["chi2"])
+    nodes2 = nodes.copy()
+    nodes2[1] = other  # breaks the include and uses the excluded node
+    ok2 = {
+        it["control"]: it["satisfied"]
+        for it in structure.control_satisfaction(g, spec, bars, nodes2, xz, 60.0)["items"]
+    }
+    assert not ok2["include[0]"] and not ok2["exclude[0]"]
+    assert ctl["count"] == 5 and ctl["share"] == pytest.approx(0.8)
+
+
+def test_kinetic_features_of_constant_motion():
+    t = np.arange(120) / FPS
+    pos = np.zeros((120, 2, 3))
+    pos[:, 0, 0] = 2.0 * t  # 2 m/s horizontally
+    pos[:, 1, 1] = -0.5 * t  # 0.5 m/s vertically
+    f = kinetic.kinetic_features(pos, FPS).reshape(2, 3)
+    assert f[0] == pytest.approx([4.0, 0.0, 0.0], abs=1e-9)
+    assert f[1] == pytest.approx([0.0, 0.25, 0.0], abs=1e-9)
+
+
+def test_fid_of_a_set_with_itself_is_zero_and_grows_with_a_perturbation():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(200, 6))
+    assert kinetic.frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
+    d = [kinetic.frechet_distance(a, a + s) for s in (0.1, 0.5, 1.0)]
+    assert 0 < d[0] < d[1] < d[2]
+    assert d[2] == pytest.approx(6.0, rel=1e-6)  # a mean shift of 1 in 6 dims
+    scaled = kinetic.frechet_distance(a, a * 2.0)
+    assert scaled > 1.0
+
+
+def test_smpl_positions_of_the_demo_skeleton(demo_bars):
+    from dancegraph.motion.fk import fk_arrays
+
+    sk = demo_bars.skeleton
+    pos, world = fk_arrays(sk, demo_bars.root[0], demo_bars.rotations[0])
+    smpl = kinetic.smpl_positions(sk, pos, world)
+    assert smpl.shape == (pos.shape[0], 24, 3)
+    assert np.allclose(smpl[:, 0], pos[:, sk.index("hips")])
+    assert np.all(np.isfinite(smpl))
+    # left and right joints are distinct points
+    left = [i for i, n in enumerate(kinetic.SMPL_JOINTS) if n.startswith("left_")]
+    assert np.all(np.linalg.norm(smpl[:, left] - smpl[:, [i + 1 for i in left]], axis=-1) > 0.01)
+
+
+def test_diversity():
+    assert diversity.feature_diversity(np.array([[0.0, 0.0], [3.0, 4.0]])) == 5.0
+    assert diversity.feature_diversity(np.zeros((1, 3))) is None
+    assert diversity.path_diversity([np.array([1, 2, 3, 4]), np.array([1, 2, 5, 6])]) == 0.5
+    assert diversity.path_diversity([np.array([1, 2])]) is None

@@ -1,0 +1,64 @@
+"""A real ``dancegraph synthesize`` output for the preview tests, made once per test session with
+the project's own code: the generated demo library imported and built into a graph, a generated
+song (8 bars, 124 BPM), and the CLI's analysis → search → render (2 alternatives, a stage)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+_made: dict[str, Path] = {}
+
+
+def synthesized(tmp_path_factory) -> Path:
+    """The folder holding ``song.wav`` and the synthesize output ``out/`` (timeline, 2 BVH)."""
+    if "root" in _made:
+        return _made["root"]
+    from dancegraph.cli import main as cli_main
+    from dancegraph.graph.build import build_graph
+    from dancegraph.motion.dataset import import_dataset, load_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.music.generator import generate_song, write_song
+    from dancegraph.store import ObjectStore
+
+    root = tmp_path_factory.mktemp("preview")
+    store = ObjectStore(root / "store")
+    lib = write_demo_library(root / "lib")
+    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
+    build_graph(load_dataset(store, "demo"), store)
+    song = generate_song(
+        21, meter=4, tempo_bpm=124.0, form=["A", "B"], section_bars={"A": 4, "B": 4}
+    )
+    wav, _ = write_song(song, root, "song")
+    spec = root / "spec.json"
+    spec.write_text(
+        json.dumps(
+            {
+                "seed": 1,
+                "output": {"formats": ["bvh"], "fps": 30},
+                "stage": {"x": [-2, 2], "z": [-2, 2]},
+            }
+        )
+    )
+    argv = [
+        "synthesize",
+        str(wav),
+        "--dataset",
+        "demo",
+        "--spec",
+        str(spec),
+        "--out",
+        str(root / "out"),
+    ]
+    assert cli_main([*argv, "--alternatives", "2", "--store", str(store.root)]) == 0
+    _made["root"] = root
+    return root
+
+
+def switch_time(timeline: dict) -> float:
+    """Mid-time of the first bar whose chosen node differs between alternatives 0 and 1."""
+    alts = timeline["alternatives"]
+    for b, bar in enumerate(timeline["bars"]):
+        if alts[0]["bars"][b]["node"] != alts[1]["bars"][b]["node"]:
+            return (bar["start_s"] + bar["end_s"]) / 2
+    raise AssertionError("the two alternatives choose the same node in every bar")

@@ -1,0 +1,148 @@
+"""The preview page in real headless Chromium: a job's ``preview_url`` opened with no API key (the
+signed token), served by the API under uvicorn, driven by ``frontend/tests/browser.mjs``
+(playwright-core on Debian's /usr/bin/chromium).
+
+Skipped only where Chromium, Node.js or the built front end is missing; with
+``DANCEGRAPH_REQUIRE_BROWSER=1`` (set by .ci/run, which installs Chromium) it fails instead.
+The screenshot goes to ``$DANCEGRAPH_TEST_ARTIFACTS`` (default ``test-artifacts/``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dancegraph.preview import pose_track_file
+from tests.services.preview_result import switch_time, synthesized
+from tests.services.test_preview import finish_with
+from tests.services.test_worker_harness import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+FRONTEND = REPO / "frontend"
+CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
+
+
+def _require_browser() -> str:
+    from services.preview_server import STATIC_DIR
+
+    node = shutil.which("node")
+    missing = [
+        what
+        for what, ok in (
+            (f"chromium ({CHROMIUM}; apt-get install chromium)", Path(CHROMIUM).is_file()),
+            ("node", node is not None),
+            (
+                "playwright-core (bash scripts/install-frontend.sh)",
+                (FRONTEND / "node_modules/playwright-core").is_dir(),
+            ),
+            (
+                "the built page (bash scripts/install-frontend.sh)",
+                (STATIC_DIR / "preview.js").is_file(),
+            ),
+        )
+        if not ok
+    ]
+    if missing:
+        reason = "browser test needs " + ", ".join(missing)
+        if os.environ.get("DANCEGRAPH_REQUIRE_BROWSER") == "1":
+            pytest.fail(reason + " (DANCEGRAPH_REQUIRE_BROWSER=1)")
+        pytest.skip(reason)
+    return node
+
+
+def _serve(app):
+    """Run ``app`` under uvicorn in a thread; returns (base URL, stop function)."""
+    import uvicorn
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the test server did not start")
+        time.sleep(0.05)
+
+    def stop() -> None:
+        server.should_exit = True
+        thread.join(10)
+
+    return f"http://127.0.0.1:{port}", stop
+
+
+def _moved(a: list[float], b: list[float]) -> float:
+    """Largest joint displacement (m) between two poses."""
+    return float(np.abs(np.asarray(a) - np.asarray(b)).max())
+
+
+def test_preview_page_in_chromium(api, tmp_path_factory):
+    node = _require_browser()
+    root = synthesized(tmp_path_factory)
+    timeline = json.loads((root / "out/timeline.json").read_text())
+    job_id = api.submit((root / "song.wav").read_bytes(), {"alternatives": 2}).json()["id"]
+    finish_with(api, job_id, root / "out")
+    preview_url = api.get(f"/v1/jobs/{job_id}").json()["preview_url"]
+
+    artifacts = Path(os.environ.get("DANCEGRAPH_TEST_ARTIFACTS", REPO / "test-artifacts"))
+    artifacts.mkdir(parents=True, exist_ok=True)
+    shot = artifacts / "preview.png"
+    shot.unlink(missing_ok=True)
+    t_switch = switch_time(timeline)
+    base, stop = _serve(api.app)
+    try:
+        run = subprocess.run(
+            [node, "tests/browser.mjs", base + preview_url, str(shot), str(t_switch)],
+            cwd=FRONTEND,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "CHROMIUM": CHROMIUM},
+        )
+    finally:
+        stop()
+    assert run.returncode == 0, run.stderr[-3000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+
+    # loads cleanly: no console errors, no page errors, every request answered
+    assert seen["error"] is None
+    assert seen["console_errors"] == [] and seen["page_errors"] == []
+    assert seen["failed_requests"] == []
+    assert seen["alternatives"] == 2
+    # the WebGL canvas shows something: grid, stage, skeleton (many pixels, many colours)
+    canvas = seen["canvas"]
+    assert canvas["non_background"] > 0.01 * canvas["width"] * canvas["height"]
+    assert canvas["colours"] > 20
+    # seeking moves the skeleton; the current bar follows the clock
+    a, b = seen["seek_a"], seen["seek_b"]
+    joints = pose_track_file(root / "out/alternatives/0.bvh")["joints"]
+    assert len(a["pose"]) == len(b["pose"]) == 3 * len(joints)
+    assert _moved(a["pose"], b["pose"]) > 0.01
+    bars = timeline["bars"]
+    expected_bar = next(
+        i for i, bar in enumerate(bars) if bar["start_s"] <= t_switch < bar["end_s"]
+    )
+    assert b["bar"] == expected_bar and seen["current_bars"] == [expected_bar]
+    # real playback: the audio clock advances and the drawn pose follows it
+    play = seen["play"]
+    assert seen["play_error"] is None
+    assert play["after"]["time"] - play["before"]["time"] > 0.5
+    assert _moved(play["before"]["pose"], play["after"]["pose"]) > 0.005
+    # switching the alternative at the same time changes the pose
+    switch = seen["switch"]
+    assert switch["after"]["alternative"] == 1 and switch["after"]["selected"] == "1"
+    assert _moved(switch["before"]["pose"], switch["after"]["pose"]) > 0.01
+    # clicking bar 1 shows its cost breakdown (of alternative 1, the one shown)
+    cost = timeline["alternatives"][1]["bars"][1]["cost"]
+    rows = dict(row.split("\t") for row in seen["breakdown"]["rows"][1:])
+    assert {k: float(v) for k, v in rows.items() if k != "sum"} == pytest.approx(cost, abs=1e-4)
+    assert timeline["alternatives"][1]["bars"][1]["node"] in seen["breakdown"]["text"]
+    assert shot.is_file() and shot.stat().st_size > 10_000
