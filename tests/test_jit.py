@@ -8,8 +8,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from dancegraph import jit
 from services.worker import celery_app
 
@@ -29,15 +27,16 @@ def test_warm_up_fills_the_cache_folder(tmp_path: Path):
     assert any(n.startswith("_dp.") for n in names), names  # the graph search
 
 
-def test_compile_lock_excludes_other_processes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+def test_compile_lock_excludes_other_processes():
+    # the child must lock the same folder as this process (whose numba may already be configured)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(jit.configure_cache())}
     code = (
         "import time\nfrom dancegraph import jit\n"
         "t = time.time()\nwith jit.compile_lock():\n    print(time.time() - t)\n"
     )
     with jit.compile_lock():
         child = subprocess.Popen(
-            [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ.copy()
+            [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env
         )
         time.sleep(1.5)
         assert child.poll() is None  # still waiting for the lock we hold

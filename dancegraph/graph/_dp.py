@@ -1,18 +1,102 @@
 """Numba kernels of the graph search (see ``search.py`` for the model).
 
-One forward pass over the *chain* of tied variables (first appearances in song order) with a beam
-of at most ``beam`` states per chain step (exact when the graph has no more nodes than that).
-Every state carries its root pose so stage bounds and waypoints are costed on the trajectory.
-Song bars between two chain steps are copies of earlier variables (repeat/mirror ties): their
-nodes come from the state's own history (backtracking), their transitions are costed exactly.
+One forward pass over the *chain* of tied variables (first appearances in song order), with no
+beam: every node keeps its cheapest state (up to ``slots`` states when they end in different
+places, or come from different predecessors), so without ties and trajectory terms the pass is
+the exact Viterbi. Each state carries its root pose so stage bounds and waypoints are costed on
+the trajectory. Song bars that are not chain steps are copies of earlier variables (repeat and
+mirror ties); their nodes come from the state's own history (back pointers). A chain bar's incoming
+transition is relaxed along graph edges (times its count in the song: copies repeat it); every
+other transition is *charged*: each distinct (variable, parity) → (variable, parity) transition
+once, times its count, as soon as the state's history decides both of its ends. Charges are kept
+per state in a cache that outlives the pass (``memo``): the passes for alternatives mostly
+revisit the same histories. Copies' root poses are walked in song order.
+
+The arrays travel in three named tuples (``Graph``, ``Chain``, ``Track``) instead of long
+argument lists. The hot loops read the fields they need once, into locals, and give helpers plain
+arrays: inside a loop, a tuple field read or a tuple handed to an inlined helper costs numba
+reference counting (measured 2–3× slower on the 750k-edge benchmark graph).
 """
 
 from __future__ import annotations
 
+from collections import namedtuple
+
+import os
+
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+# numba's "workqueue" threads survive fork (a worker pool forks after the warm-up; GNU OpenMP's
+# do not: the child is terminated), but must not run two parallel kernels at once: callers of
+# ``forward`` hold ``FORWARD_LOCK``. NUMBA_THREADING_LAYER overrides; NUMBA_NUM_THREADS sets the
+# thread count (default: every core).
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
 
 INF = np.float32(np.inf)
+# steps with at least this many states (nodes) spread over threads; below, one thread is faster
+PARALLEL_MIN = 16384
+CHUNKS = 64  # parallel loops run in this many chunks: balances uneven chunks over threads
+
+Graph = namedtuple(
+    "Graph",
+    [
+        "indptr",  # (N+1,) int64 CSR out-edges
+        "indices",  # (E,) int32 edge targets, sorted per row
+        "costs",  # (E,) float32 edge costs T
+        "in_ptr",  # (N+1,) int64 the same edges by target
+        "in_src",  # (E,) int32 their sources
+        "in_cost",  # (E,) float32 their costs
+        # (N, D + 32) float32 per node, one row: compressed exit-pose features, style embedding
+        "out_feat",
+        # (N, D + 32) float32 compressed entry-pose features, style embedding
+        "in_feat",
+        "blocks",  # (B,) int64 pose feature block sizes (sum D)
+        "mirror_of",  # (N,) int64 mirror node (-1: none)
+        # (N, 8) float64 per node, one cache line: the root displacement over the bar dx, dz (m),
+        # dyaw (rad), cos and sin of dyaw, the bar's largest root excursion (m), 2 unused
+        "motion",
+        "path",  # (N, P, 2) float64 root path samples in the bar's frame (m)
+        "weights",  # (3,) float64 (λ8, λ9, penalty on a transition that is not an edge: δT)
+    ],
+)
+
+Chain = namedtuple(
+    "Chain",
+    [
+        "var",  # (C,) int64 variable of each chain step
+        "bar",  # (C,) int64 song bar of each chain step
+        "gap_ptr",  # (C+2,) copies before chain step c (trailing copies at C) in gap_*
+        "gap_bar",  # song bar of each copy
+        "gap_step",  # chain step of the copy's variable
+        "gap_par",  # 1 when the copy mirrors its variable
+        "charge_ptr",  # (C+2,) transitions charged to the states of step c-1 in charge_*
+        "charge_a",  # chain step of the transition's first variable
+        "charge_pa",  # its parity
+        "charge_b",  # chain step of the second variable
+        "charge_pb",  # its parity
+        "charge_n",  # float64 count of the transition in the song
+        "relax_n",  # (C,) float64 count of each chain bar's incoming transition in the song
+    ],
+)
+
+Track = namedtuple(
+    "Track",
+    [
+        "on",  # follow the root trajectory (stage or waypoints set); else poses stay 0
+        "cell",  # metres (L1) that make two states' root positions different
+        "start",  # (3,) start pose x, z, yaw
+        "stage",  # (5,) xmin xmax zmin zmax (xmin >= xmax: none), penalty per metre off it
+        "wp_bar",  # (W,) int64 song bar of each waypoint
+        "wp_idx",  # (W,) int64 root path sample of each waypoint
+        "wp_pos",  # (W, 2) float64 target x, z
+        "wp_tol",  # (W,) float64 tolerance (m)
+        "wp_w",  # penalty per metre beyond the tolerance
+        "reach",  # largest root travel of any node in one bar (m): waypoint look-ahead
+    ],
+)
 
 
 @njit(cache=True, inline="always")
@@ -31,177 +115,86 @@ def _edge_cost(indptr, indices, costs, p, q):
     return np.float32(-1.0)
 
 
-@njit(cache=True, fastmath=False)
-def pair_cost(
-    indptr, indices, costs, exit_f, entry_f, style, blocks, w_pose, w_style, offgraph, p, q
-):
-    """Edge cost p→q when the edge exists, else the on-demand T plus the off-graph penalty."""
-    c = _edge_cost(indptr, indices, costs, p, q)
-    if c >= 0:
-        return c
-    t = 0.0
+@njit(cache=True, fastmath=True, inline="always")
+def _sq_dist(x, y):
+    s = np.float32(0.0)
+    for d in range(x.shape[0]):
+        e = x[d] - y[d]
+        s += e * e
+    return s
+
+
+@njit(cache=True, fastmath=True)
+def _offgraph_cost(out_feat, in_feat, blocks, weights, p, q):
+    """Cost of p→q when it is not an edge: the on-demand T from the compressed features,
+    λ8·Σ_blocks ‖exit_p − entry_q‖ + λ9·‖z_p − z_q‖, plus the penalty δT.
+
+    Not inlined: fastmath lets its reductions vectorise (over slices: about 4× faster than over
+    index ranges) while the kernels keep strict inf semantics. One feature row per node and side
+    (exit or entry, then style): on large graphs each row read is a cache miss."""
+    x = out_feat[p]
+    y = in_feat[q]
+    t = np.float32(0.0)
     start = 0
     for b in range(blocks.shape[0]):
-        s = 0.0
-        for d in range(start, start + blocks[b]):
-            x = exit_f[p, d] - entry_f[q, d]
-            s += x * x
-        t += np.sqrt(s)
-        start += blocks[b]
-    s = 0.0
-    for d in range(style.shape[1]):
-        x = style[p, d] - style[q, d]
-        s += x * x
-    return np.float32(w_pose * t + w_style * np.sqrt(s) + offgraph)
+        stop = start + blocks[b]
+        t += np.sqrt(_sq_dist(x[start:stop], y[start:stop]))
+        start = stop
+    style = np.sqrt(_sq_dist(x[start:], y[start:]))
+    return np.float32(weights[0] * t + weights[1] * style + weights[2])
 
 
 @njit(cache=True, inline="always")
-def _advance(x, z, yaw, dx, dz, dyaw):
-    c = np.cos(yaw)
-    s = np.sin(yaw)
-    return x + dx * c + dz * s, z - dx * s + dz * c, yaw + dyaw
-
-
-@njit(cache=True, inline="always")
-def _pose_penalty(
-    x, z, yaw, n, t, radius, path, stage, stage_w, wp_bar, wp_idx, wp_pos, wp_tol, wp_w
-):
-    """User penalty for placing node n at pose (x, z, yaw) as song bar t."""
+def _placed(motion, stage, x, z, yaw, cy, sy, n):
+    """Node n placed at (x, z) facing yaw (cos cy, sin sy): (stage penalty, pose after the bar as
+    x, z, yaw, cos yaw, sin yaw; the turn composed without trigonometry). Plain arrays, not the
+    tuples: a tuple passed into a hot loop's helper costs reference counting (about 3× slower)."""
     pen = 0.0
     if stage[0] < stage[1]:
-        r = radius[n]
-        over = 0.0
-        over += max(0.0, stage[0] - (x - r)) + max(0.0, (x + r) - stage[1])
+        r = motion[n, 5]
+        over = max(0.0, stage[0] - (x - r)) + max(0.0, (x + r) - stage[1])
         over += max(0.0, stage[2] - (z - r)) + max(0.0, (z + r) - stage[3])
-        pen += stage_w * over
-    for w in range(wp_bar.shape[0]):
-        if wp_bar[w] == t:
-            k = wp_idx[w]
-            px = path[n, k, 0]
-            pz = path[n, k, 1]
-            c = np.cos(yaw)
-            s = np.sin(yaw)
-            wx = x + px * c + pz * s
-            wz = z - px * s + pz * c
-            d = np.sqrt((wx - wp_pos[w, 0]) ** 2 + (wz - wp_pos[w, 1]) ** 2)
-            pen += wp_w * max(0.0, d - wp_tol[w])
-    return pen
-
-
-@njit(cache=True, inline="always")
-def _lookahead(x, z, t, wp_bar, wp_pos, wp_tol, reach, wp_w):
-    """Penalty for a state whose next bar starts at (x, z) after song bar t when a later waypoint
-    is out of reach even at the graph's largest per-bar travel ``reach`` (a lower bound, so it
-    never rules out a feasible path; it makes far-off states lose the beam to feasible ones)."""
-    pen = 0.0
-    for w in range(wp_bar.shape[0]):
-        if wp_bar[w] > t:
-            d = np.sqrt((x - wp_pos[w, 0]) ** 2 + (z - wp_pos[w, 1]) ** 2)
-            need = d - wp_tol[w] - reach * (wp_bar[w] - t)
-            if need > 0:
-                pen += wp_w * need
-    return pen
+        pen += stage[4] * over
+    dx, dz = motion[n, 0], motion[n, 1]
+    c, s = motion[n, 3], motion[n, 4]
+    return (
+        pen,
+        x + dx * cy + dz * sy,
+        z - dx * sy + dz * cy,
+        yaw + motion[n, 2],
+        cy * c - sy * s,
+        sy * c + cy * s,
+    )
 
 
 @njit(cache=True)
-def _walk_gap(
-    i,
-    prev,
-    g0,
-    g1,
-    act_node,
-    act_back,
-    act_cost,
-    act_pose,
-    hist,
-    gap_bar,
-    gap_var,
-    gap_par,
-    var_chain,
-    mirror_of,
-    indptr,
-    indices,
-    costs,
-    exit_f,
-    entry_f,
-    style,
-    blocks,
-    w_pose,
-    w_style,
-    w_trans,
-    offgraph,
-    disp,
-    radius,
-    path,
-    stage,
-    stage_w,
-    wp_bar,
-    wp_idx,
-    wp_pos,
-    wp_tol,
-    wp_w,
-    reach,
-    track,
-):
-    """State i of step ``prev`` walked through the copies g0..g1: (cost, x, z, yaw, last node)."""
-    src = act_node[prev, i]
-    base = act_cost[prev, i]
-    x = act_pose[prev, i, 0]
-    z = act_pose[prev, i, 1]
-    yaw = act_pose[prev, i, 2]
-    if g1 > g0:
-        depth = prev
-        for g in range(g0, g1):
-            if var_chain[gap_var[g]] < depth:
-                depth = var_chain[gap_var[g]]
-        k = i
-        for s in range(prev, depth - 1, -1):
-            hist[s] = act_node[s, k]
-            k = act_back[s, k]
-        for g in range(g0, g1):
-            node = hist[var_chain[gap_var[g]]]
-            if gap_par[g] == 1:
-                node = mirror_of[node]
-            base += w_trans * pair_cost(
-                indptr,
-                indices,
-                costs,
-                exit_f,
-                entry_f,
-                style,
-                blocks,
-                w_pose,
-                w_style,
-                offgraph,
-                src,
-                node,
-            )
-            if track:
-                base += _pose_penalty(
-                    x,
-                    z,
-                    yaw,
-                    node,
-                    gap_bar[g],
-                    radius,
-                    path,
-                    stage,
-                    stage_w,
-                    wp_bar,
-                    wp_idx,
-                    wp_pos,
-                    wp_tol,
-                    wp_w,
-                )
-                x, z, yaw = _advance(x, z, yaw, disp[node, 0], disp[node, 1], disp[node, 2])
-                base += _lookahead(x, z, gap_bar[g], wp_bar, wp_pos, wp_tol, reach, wp_w)
-            src = node
-    return base, x, z, yaw, src
+def _waypoint_terms(tr, g, x, z, cy, sy, nx, nz, n, t):
+    """Waypoint penalty of node n placed as song bar t at (x, z) facing yaw (cos cy, sin sy) and
+    ending at (nx, nz): its root path missing a waypoint of bar t, and a later waypoint out of
+    reach even at the graph's largest per-bar travel (a lower bound, so it never rules out a
+    feasible path; it makes far-off states lose to feasible ones). Called only when there are
+    waypoints."""
+    pen = 0.0
+    for w in range(tr.wp_bar.shape[0]):
+        if tr.wp_bar[w] == t:
+            k = tr.wp_idx[w]
+            px = g.path[n, k, 0]
+            pz = g.path[n, k, 1]
+            wx = x + px * cy + pz * sy
+            wz = z - px * sy + pz * cy
+            d = np.sqrt((wx - tr.wp_pos[w, 0]) ** 2 + (wz - tr.wp_pos[w, 1]) ** 2)
+            pen += tr.wp_w * max(0.0, d - tr.wp_tol[w])
+        elif tr.wp_bar[w] > t:
+            d = np.sqrt((nx - tr.wp_pos[w, 0]) ** 2 + (nz - tr.wp_pos[w, 1]) ** 2)
+            need = d - tr.wp_tol[w] - tr.reach * (tr.wp_bar[w] - t)
+            if need > 0:
+                pen += tr.wp_w * need
+    return pen
 
 
 @njit(cache=True, inline="always")
-def _offer(q, cand, i, x, z, yaw, best, best_back, best_pose, n_slot, touched, nt, slots, cell):
-    """Offer a candidate state for node q; returns the new touched count.
+def _offer(q, cand, i, x, z, yaw, cost, back, pose, n_slot, slots, cell):
+    """Offer a candidate state (predecessor state i) for node q.
 
     With ``slots`` > 1 a node keeps up to that many states whose root positions differ by more
     than ``cell`` metres, so histories that end in different places survive (stage, waypoints);
@@ -209,397 +202,34 @@ def _offer(q, cand, i, x, z, yaw, best, best_back, best_pose, n_slot, touched, n
     costs depend on the history).
     """
     n = n_slot[q]
-    if n == 0:
-        touched[nt] = q
-        nt += 1
     for k in range(n):
         if (
             slots == 1
-            or (cell >= 0.0 and abs(best_pose[q, k, 0] - x) + abs(best_pose[q, k, 1] - z) < cell)
-            or (cell < 0.0 and best_back[q, k] == i)
+            or (cell >= 0.0 and abs(pose[q, k, 0] - x) + abs(pose[q, k, 1] - z) < cell)
+            or (cell < 0.0 and back[q, k] == i)
         ):
-            if cand < best[q, k]:
-                best[q, k] = cand
-                best_back[q, k] = i
-                best_pose[q, k, 0] = x
-                best_pose[q, k, 1] = z
-                best_pose[q, k, 2] = yaw
-            return nt
+            if cand < cost[q, k]:
+                cost[q, k] = cand
+                back[q, k] = i
+                pose[q, k, 0] = x
+                pose[q, k, 1] = z
+                pose[q, k, 2] = yaw
+            return
     if n < slots:
         k = n
         n_slot[q] = n + 1
     else:
         k = 0
         for j in range(1, n):
-            if best[q, j] > best[q, k]:
+            if cost[q, j] > cost[q, k]:
                 k = j
-        if cand >= best[q, k]:
-            return nt
-    best[q, k] = cand
-    best_back[q, k] = i
-    best_pose[q, k, 0] = x
-    best_pose[q, k, 1] = z
-    best_pose[q, k, 2] = yaw
-    return nt
-
-
-@njit(cache=True)
-def forward(
-    unary,  # (V, N) float32 per variable
-    chain_var,  # (C,) variable of each chain step
-    chain_bar,  # (C,) song bar of each chain step
-    gap_ptr,  # (C+2,) copies before chain step c (and trailing copies at C) in gap_bar/gap_var/gap_par
-    gap_bar,
-    gap_var,
-    gap_par,
-    var_chain,  # (V,) chain step of each variable
-    indptr,
-    indices,
-    costs,
-    exit_f,
-    entry_f,
-    style,
-    blocks,
-    mirror_of,
-    disp,
-    radius,
-    path,
-    w_pose,
-    w_style,
-    w_trans,
-    offgraph,
-    start_pose,  # (3,)
-    stage,  # (4,) xmin xmax zmin zmax (xmin >= xmax: none)
-    stage_w,
-    wp_bar,
-    wp_idx,
-    wp_pos,
-    wp_tol,
-    wp_w,
-    beam,
-    var_dense,  # (V,) bool: the variable has a short allowed set (pins): relax from the list
-    slots,
-    cell,
-    reach,  # largest root travel of any node in one bar (m): waypoint look-ahead
-    track,  # follow the root trajectory (stage or waypoints set); else poses stay 0
-    short,  # length of the short list (pinned variables, and the fallback)
-):
-    n_nodes = unary.shape[1]
-    n_chain = chain_var.shape[0]
-    act_node = np.full((n_chain, beam), -1, np.int32)
-    act_back = np.full((n_chain, beam), -1, np.int32)
-    act_cost = np.full((n_chain, beam), INF, np.float32)
-    act_pose = np.zeros((n_chain, beam, 3), np.float64)
-    act_n = np.zeros(n_chain, np.int64)
-
-    best = np.full((n_nodes, slots), INF, np.float32)
-    best_back = np.full((n_nodes, slots), -1, np.int32)
-    best_pose = np.zeros((n_nodes, slots, 3), np.float64)
-    n_slot = np.zeros(n_nodes, np.int64)
-    touched = np.empty(n_nodes, np.int64)
-    hist = np.empty(n_chain, np.int32)
-
-    # step 0: every allowed node, placed at the start pose
-    v0 = chain_var[0]
-    nt = 0
-    for q in range(n_nodes):
-        u = unary[v0, q]
-        if u < INF:
-            pen = 0.0
-            x = 0.0
-            z = 0.0
-            y = 0.0
-            if track:
-                pen = _pose_penalty(
-                    start_pose[0],
-                    start_pose[1],
-                    start_pose[2],
-                    q,
-                    chain_bar[0],
-                    radius,
-                    path,
-                    stage,
-                    stage_w,
-                    wp_bar,
-                    wp_idx,
-                    wp_pos,
-                    wp_tol,
-                    wp_w,
-                )
-                x, z, y = _advance(
-                    start_pose[0], start_pose[1], start_pose[2], disp[q, 0], disp[q, 1], disp[q, 2]
-                )
-                pen += _lookahead(x, z, chain_bar[0], wp_bar, wp_pos, wp_tol, reach, wp_w)
-            nt = _offer(
-                q,
-                u + pen,
-                -1,
-                x,
-                z,
-                y,
-                best,
-                best_back,
-                best_pose,
-                n_slot,
-                touched,
-                nt,
-                slots,
-                cell,
-            )
-    _select(
-        0,
-        nt,
-        touched,
-        best,
-        best_back,
-        best_pose,
-        n_slot,
-        act_node,
-        act_back,
-        act_cost,
-        act_pose,
-        act_n,
-        beam,
-    )
-
-    for c in range(1, n_chain + 1):
-        prev = c - 1
-        g0 = gap_ptr[c]
-        g1 = gap_ptr[c + 1]
-        if c == n_chain:
-            # trailing copies: each final state only collects their cost
-            if g1 > g0:
-                for i in range(act_n[prev]):
-                    base, x, z, yaw, src = _walk_gap(
-                        i,
-                        prev,
-                        g0,
-                        g1,
-                        act_node,
-                        act_back,
-                        act_cost,
-                        act_pose,
-                        hist,
-                        gap_bar,
-                        gap_var,
-                        gap_par,
-                        var_chain,
-                        mirror_of,
-                        indptr,
-                        indices,
-                        costs,
-                        exit_f,
-                        entry_f,
-                        style,
-                        blocks,
-                        w_pose,
-                        w_style,
-                        w_trans,
-                        offgraph,
-                        disp,
-                        radius,
-                        path,
-                        stage,
-                        stage_w,
-                        wp_bar,
-                        wp_idx,
-                        wp_pos,
-                        wp_tol,
-                        wp_w,
-                        reach,
-                        track,
-                    )
-                    act_cost[prev, i] = base
-            break
-        v = chain_var[c]
-        cbar = chain_bar[c]
-        dense = var_dense[v]
-        nt = 0
-        small = np.empty(0, np.int64)
-        if dense:
-            small = _short_list(unary[v], short)
-        for rnd in range(2):
-            # round 0: graph edges (or the short list when the variable is pinned);
-            # round 1 only when nothing was reached: the short list, off-graph transitions allowed
-            if rnd == 1:
-                if nt > 0:
-                    break
-                small = _short_list(unary[v], short)
-                if small.shape[0] == 0:
-                    break
-            use_list = dense or rnd == 1
-            for i in range(act_n[prev]):
-                if g1 > g0:
-                    base, x, z, yaw, src = _walk_gap(
-                        i,
-                        prev,
-                        g0,
-                        g1,
-                        act_node,
-                        act_back,
-                        act_cost,
-                        act_pose,
-                        hist,
-                        gap_bar,
-                        gap_var,
-                        gap_par,
-                        var_chain,
-                        mirror_of,
-                        indptr,
-                        indices,
-                        costs,
-                        exit_f,
-                        entry_f,
-                        style,
-                        blocks,
-                        w_pose,
-                        w_style,
-                        w_trans,
-                        offgraph,
-                        disp,
-                        radius,
-                        path,
-                        stage,
-                        stage_w,
-                        wp_bar,
-                        wp_idx,
-                        wp_pos,
-                        wp_tol,
-                        wp_w,
-                        reach,
-                        track,
-                    )
-                else:  # the common case, kept free of a call with many array arguments
-                    src = act_node[prev, i]
-                    base = act_cost[prev, i]
-                    x = act_pose[prev, i, 0]
-                    z = act_pose[prev, i, 1]
-                    yaw = act_pose[prev, i, 2]
-                if use_list:
-                    for s in range(small.shape[0]):
-                        q = small[s]
-                        cand = (
-                            base
-                            + unary[v, q]
-                            + w_trans
-                            * pair_cost(
-                                indptr,
-                                indices,
-                                costs,
-                                exit_f,
-                                entry_f,
-                                style,
-                                blocks,
-                                w_pose,
-                                w_style,
-                                offgraph,
-                                src,
-                                q,
-                            )
-                        )
-                        nx = 0.0
-                        nz = 0.0
-                        ny = 0.0
-                        if track:
-                            cand += _pose_penalty(
-                                x,
-                                z,
-                                yaw,
-                                q,
-                                cbar,
-                                radius,
-                                path,
-                                stage,
-                                stage_w,
-                                wp_bar,
-                                wp_idx,
-                                wp_pos,
-                                wp_tol,
-                                wp_w,
-                            )
-                            nx, nz, ny = _advance(x, z, yaw, disp[q, 0], disp[q, 1], disp[q, 2])
-                            cand += _lookahead(nx, nz, cbar, wp_bar, wp_pos, wp_tol, reach, wp_w)
-                        nt = _offer(
-                            q,
-                            cand,
-                            i,
-                            nx,
-                            nz,
-                            ny,
-                            best,
-                            best_back,
-                            best_pose,
-                            n_slot,
-                            touched,
-                            nt,
-                            slots,
-                            cell,
-                        )
-                else:
-                    for e in range(indptr[src], indptr[src + 1]):
-                        q = indices[e]
-                        u = unary[v, q]
-                        if u == INF:
-                            continue
-                        cand = base + w_trans * costs[e] + u
-                        if slots == 1 and cand >= best[q, 0]:
-                            continue
-                        nx = 0.0
-                        nz = 0.0
-                        ny = 0.0
-                        if track:
-                            cand += _pose_penalty(
-                                x,
-                                z,
-                                yaw,
-                                q,
-                                cbar,
-                                radius,
-                                path,
-                                stage,
-                                stage_w,
-                                wp_bar,
-                                wp_idx,
-                                wp_pos,
-                                wp_tol,
-                                wp_w,
-                            )
-                            nx, nz, ny = _advance(x, z, yaw, disp[q, 0], disp[q, 1], disp[q, 2])
-                            cand += _lookahead(nx, nz, cbar, wp_bar, wp_pos, wp_tol, reach, wp_w)
-                        nt = _offer(
-                            q,
-                            cand,
-                            i,
-                            nx,
-                            nz,
-                            ny,
-                            best,
-                            best_back,
-                            best_pose,
-                            n_slot,
-                            touched,
-                            nt,
-                            slots,
-                            cell,
-                        )
-        _select(
-            c,
-            nt,
-            touched,
-            best,
-            best_back,
-            best_pose,
-            n_slot,
-            act_node,
-            act_back,
-            act_cost,
-            act_pose,
-            act_n,
-            beam,
-        )
-        if act_n[c] == 0:
-            return act_node, act_back, act_cost, act_n, c
-    return act_node, act_back, act_cost, act_n, -1
+        if cand >= cost[q, k]:
+            return
+    cost[q, k] = cand
+    back[q, k] = i
+    pose[q, k, 0] = x
+    pose[q, k, 1] = z
+    pose[q, k, 2] = yaw
 
 
 @njit(cache=True)
@@ -613,70 +243,362 @@ def _short_list(row, short):
 
 
 @njit(cache=True)
-def _select(
-    c,
-    nt,
-    touched,
-    best,
-    best_back,
-    best_pose,
-    n_slot,
-    act_node,
-    act_back,
-    act_cost,
-    act_pose,
-    act_n,
-    beam,
-):
-    """Keep the ``beam`` cheapest offered states as step c's active list; reset the buffers."""
-    m = 0
-    for j in range(nt):
-        m += n_slot[touched[j]]
-    vals = np.empty(m, np.float32)
-    m = 0
-    for j in range(nt):
-        q = touched[j]
-        for k in range(n_slot[q]):
-            vals[m] = best[q, k]
-            m += 1
-    cut = np.partition(vals, beam - 1)[beam - 1] if m > beam else INF
-    n = 0
-    # below the cut first, then ties at the cut until the beam is full
-    for rnd in range(2):
-        for j in range(nt):
-            q = touched[j]
+def _depth(ch, c):
+    """The oldest chain step whose node the copies and charges of step c's states need."""
+    depth = c - 1
+    for j in range(ch.gap_ptr[c], ch.gap_ptr[c + 1]):
+        depth = min(depth, ch.gap_step[j])
+    for j in range(ch.charge_ptr[c], ch.charge_ptr[c + 1]):
+        depth = min(depth, ch.charge_a[j], ch.charge_b[j])
+    return depth
+
+
+@njit(cache=True)
+def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost):
+    """Ready the states ``act[0][lo:hi]`` of chain step c-1 to relax into step c: add their
+    charges, walk their copies' poses, find the node the next chain bar follows. Writes
+    ``act[1..3][a]`` (cost so far, source node, pose), or the final cost ``act[4][s]`` after the
+    last step. States are independent: chunks of them run on different threads.
+
+    ``anc (2, N·slots, W) int32``: each state's nodes at its last W chain steps (step j in column
+    j mod W); the rows of step c-2's states are read from ``anc[(c-1) % 2]``, those of step c-1's
+    written to ``anc[c % 2]``: one read per state instead of a chain of back pointers (each a
+    cache miss on large graphs)."""
+    act_state, act_base, act_src, act_pose, final = act
+    n_chain = ch.var.shape[0]
+    prev = c - 1
+    track = tr.on
+    memo = memo_node.shape[1] > 0
+    indptr, indices, costs = g.indptr, g.indices, g.costs
+    out_feat, in_feat, blocks, weights = g.out_feat, g.in_feat, g.blocks, g.weights
+    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
+    mirror_of, motion, stage = g.mirror_of, g.motion, tr.stage
+    n_wp = tr.wp_bar.shape[0]
+    gap_step, gap_par, gap_bar = ch.gap_step, ch.gap_par, ch.gap_bar
+    charge_a, charge_pa, charge_b, charge_pb = ch.charge_a, ch.charge_pa, ch.charge_b, ch.charge_pb
+    charge_n = ch.charge_n
+    g0, g1 = ch.gap_ptr[c], ch.gap_ptr[c + 1]
+    h0, h1 = ch.charge_ptr[c], ch.charge_ptr[c + 1]
+    depth = _depth(ch, c)
+    win = anc.shape[2]
+    anc_in, anc_out = anc[(c - 1) % 2], anc[c % 2]
+    hist = np.zeros(n_chain, np.int64)
+    for a in range(lo, hi):
+        s = act_state[a]
+        q = s // slots
+        k = s - q * slots
+        base = np.float64(cost[q, k])
+        x, z, yaw = pose[q, k, 0], pose[q, k, 1], pose[q, k, 2]
+        row = anc_out[s]
+        if prev > 0:
+            row[:] = anc_in[back[prev, s]]
+        row[prev % win] = q
+        for j in range(depth, prev + 1):
+            hist[j] = row[j % win]
+        for j in range(h0, h1):
+            na = hist[charge_a[j]]
+            nb = hist[charge_b[j]]
+            if charge_pa[j] == 1:
+                na = mirror_of[na]
+            if charge_pb[j] == 1:
+                nb = mirror_of[nb]
+            if memo and memo_node[s, j, 0] == na and memo_node[s, j, 1] == nb:
+                t = memo_cost[s, j]
+            else:
+                # the edge list of the state's own node (in node order: in cache)
+                if charge_a[j] == prev:
+                    t = _edge_cost(indptr, indices, costs, na, nb)
+                else:
+                    t = _edge_cost(in_ptr, in_src, in_cost, nb, na)
+                if t < 0:
+                    t = _offgraph_cost(out_feat, in_feat, blocks, weights, na, nb)
+                if memo:
+                    memo_node[s, j, 0] = na
+                    memo_node[s, j, 1] = nb
+                    memo_cost[s, j] = t
+            base += w_trans * charge_n[j] * t
+        src = q  # the node of the bar before the next chain bar
+        cy, sy = (np.cos(yaw), np.sin(yaw)) if track and g1 > g0 else (1.0, 0.0)
+        for j in range(g0 if track else max(g0, g1 - 1), g1):
+            src = hist[gap_step[j]]
+            if gap_par[j] == 1:
+                src = mirror_of[src]
+            if track:
+                x0, z0, cy0, sy0 = x, z, cy, sy
+                pen, x, z, yaw, cy, sy = _placed(motion, stage, x, z, yaw, cy, sy, src)
+                if n_wp > 0:
+                    pen += _waypoint_terms(tr, g, x0, z0, cy0, sy0, x, z, src, gap_bar[j])
+                base += pen
+        if c == n_chain:
+            final[s] = base
+            continue
+        act_base[a] = base
+        act_src[a] = src
+        act_pose[a, 0] = x
+        act_pose[a, 1] = z
+        act_pose[a, 2] = yaw
+
+
+@njit(cache=True)
+def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+    """Nodes lo..hi-1 of a step with one state per node and no trajectory: each pulls its
+    cheapest in-edge from ``src_best`` / ``src_state`` (the cheapest state continuing from each
+    node). Reads the states at random, writes in order; nodes are independent."""
+    for q in range(lo, hi):
+        u = unary_v[q]
+        if u == INF:
+            continue
+        best = np.inf
+        arg = -1
+        for e in range(in_ptr[q], in_ptr[q + 1]):
+            p = in_src[e]
+            val = src_best[p] + w_edge * in_cost[e]
+            if val < best:
+                best = val
+                arg = src_state[p]
+        if arg >= 0:
+            cost[q, 0] = best + u
+            cur[q, 0] = arg
+            n_slot[q] = 1
+
+
+@njit(cache=True, parallel=True)
+def _prepare_par(n, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost):
+    """:func:`_prepare` over ``n`` states in chunks on all threads."""
+    chunks = min(n, CHUNKS)
+    for i in prange(chunks):
+        lo, hi = n * i // chunks, n * (i + 1) // chunks
+        _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost)
+
+
+@njit(cache=True, parallel=True)
+def _pull_par(unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+    """:func:`_pull` over all nodes in chunks on all threads."""
+    n = unary_v.shape[0]
+    chunks = min(n, CHUNKS)
+    for i in prange(chunks):
+        lo, hi = n * i // chunks, n * (i + 1) // chunks
+        _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot)
+
+
+@njit(cache=True)
+def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost):
+    """The forward pass.
+
+    ``unary (V, N) float32``: cost of each node per variable (inf: not allowed); ``ch``, ``g``,
+    ``tr``: the ``Chain``, ``Graph`` and ``Track`` tuples; ``w_trans``: λ11; ``dense (V,) bool``:
+    the variable has a short allowed set (pins), relaxed from every state, not along edges;
+    ``slots``: states per node; ``short``: length of the short list (pins, and the fallback
+    when no edge reaches an allowed node); ``memo_node (N·slots, J, 2) int32`` and ``memo_cost
+    (N·slots, J) float32``: charge j of state s was costed for that node pair (fill with -1 before
+    the first pass; J = 0: no cache).
+
+    Returns ``back (C, N·slots) int32`` (state s = node·slots + k; its predecessor state at the
+    step before, -1 at step 0 and for unused states), ``final (N·slots,) float64`` (total cost of
+    each final state, inf where unused) and the chain step no state reached (-1 when none).
+    """
+    n_nodes = unary.shape[1]
+    n_chain = ch.var.shape[0]
+    n_states = n_nodes * slots
+    track = tr.on
+    cell = tr.cell
+    # the hot loops read tuple fields through locals (a field read costs reference counting)
+    indptr, indices, costs = g.indptr, g.indices, g.costs
+    out_feat, in_feat, blocks, weights = g.out_feat, g.in_feat, g.blocks, g.weights
+    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
+    motion, stage = g.motion, tr.stage
+    n_wp = tr.wp_bar.shape[0]
+    back = np.empty((n_chain, n_states), np.int32)
+    cost = np.full((n_nodes, slots), INF, np.float32)
+    pose = np.zeros((n_nodes, slots, 3))
+    n_slot = np.zeros(n_nodes, np.int64)
+    # the previous step's states, ready to relax: state id, cost so far, source node, pose; and
+    # the final states' costs
+    act = (
+        np.empty(n_states, np.int64),
+        np.empty(n_states),
+        np.empty(n_states, np.int64),
+        np.zeros((n_states, 3)),
+        np.full(n_states, np.inf),
+    )
+    act_state, act_base, act_src, act_pose, final = act
+    # pull pass: the cheapest state that continues from each node (float32, int32: the random
+    # reads stay in cache on large graphs)
+    src_best = np.empty(n_nodes, np.float32)
+    src_state = np.empty(n_nodes, np.int32)
+    win = 1
+    for c in range(1, n_chain + 1):
+        win = max(win, c - _depth(ch, c))
+    anc = np.empty((2, n_states, win), np.int32)
+
+    # step 0: every allowed node, placed at the start pose
+    cur = back[0].reshape((n_nodes, slots))
+    cur[:] = -1
+    v0 = ch.var[0]
+    for q in range(n_nodes):
+        u = unary[v0, q]
+        if u < INF:
+            pen, x, z, y = 0.0, 0.0, 0.0, 0.0
+            if track:
+                x, z, y = tr.start[0], tr.start[1], tr.start[2]
+                cy, sy = np.cos(y), np.sin(y)
+                x0, z0 = x, z
+                pen, x, z, y, _, _ = _placed(motion, stage, x, z, y, cy, sy, q)
+                if n_wp > 0:
+                    pen += _waypoint_terms(tr, g, x0, z0, cy, sy, x, z, q, ch.bar[0])
+            _offer(q, u + pen, -1, x, z, y, cost, cur, pose, n_slot, slots, cell)
+
+    for c in range(1, n_chain + 1):
+        # prepare: each state's charges, its copies' poses and the node the next bar follows
+        n_act = 0
+        for q in range(n_nodes):
             for k in range(n_slot[q]):
-                if n >= beam:
+                act_state[n_act] = q * slots + k
+                n_act += 1
+        if n_act >= PARALLEL_MIN:
+            _prepare_par(
+                n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost
+            )
+        else:
+            _prepare(
+                0, n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost
+            )
+        if c == n_chain:
+            break
+
+        # relax into step c
+        cost[:] = INF
+        n_slot[:] = 0
+        cur = back[c].reshape((n_nodes, slots))
+        cur[:] = -1
+        v = ch.var[c]
+        cbar = ch.bar[c]
+        w_edge = w_trans * ch.relax_n[c]
+        reached = False
+        for rnd in range(2):
+            # round 0: graph edges (or the short list when the variable is pinned);
+            # round 1 only when nothing was reached: the short list, off-graph transitions allowed
+            use_list = dense[v] or rnd == 1
+            if rnd == 1 and (reached or dense[v]):
+                break
+            small = _short_list(unary[v], short) if use_list else np.empty(0, np.int64)
+            pull = not use_list and slots == 1 and not track
+            if pull:
+                # one state per node, no trajectory: pull each node's cheapest in-edge (the
+                # common case, about twice as fast as pushing along out-edges)
+                src_best[:] = np.inf
+                src_state[:] = -1
+                for a in range(n_act):
+                    src = act_src[a]
+                    if act_base[a] < src_best[src]:
+                        src_best[src] = act_base[a]
+                        src_state[src] = act_state[a]
+                args = (in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur)
+                if n_nodes >= PARALLEL_MIN:
+                    _pull_par(unary[v], *args, n_slot)
+                else:
+                    _pull(0, n_nodes, unary[v], *args, n_slot)
+            for a in range(0 if pull else n_act):
+                i = act_state[a]
+                base = act_base[a]
+                src = act_src[a]
+                x, z, yaw = act_pose[a, 0], act_pose[a, 1], act_pose[a, 2]
+                cy, sy = (np.cos(yaw), np.sin(yaw)) if track else (1.0, 0.0)
+                lo, hi = indptr[src], indptr[src + 1]
+                if use_list:
+                    lo, hi = 0, small.shape[0]
+                for e in range(lo, hi):
+                    if use_list:
+                        q = small[e]
+                        u = unary[v, q]
+                        # transition and trajectory terms are not negative: a lower bound
+                        if slots == 1 and base + u >= cost[q, 0]:
+                            continue
+                        t = _edge_cost(indptr, indices, costs, src, q)
+                        if t < 0:
+                            t = _offgraph_cost(out_feat, in_feat, blocks, weights, src, q)
+                        cand = base + u + w_edge * t
+                    else:
+                        q = indices[e]
+                        u = unary[v, q]
+                        if u == INF:
+                            continue
+                        cand = base + w_edge * costs[e] + u
+                    if slots == 1 and cand >= cost[q, 0]:
+                        continue
+                    nx, nz, ny = 0.0, 0.0, 0.0
+                    if track:
+                        pen, nx, nz, ny, _, _ = _placed(motion, stage, x, z, yaw, cy, sy, q)
+                        if n_wp > 0:
+                            pen += _waypoint_terms(tr, g, x, z, cy, sy, nx, nz, q, cbar)
+                        cand += pen
+                    _offer(q, cand, i, nx, nz, ny, cost, cur, pose, n_slot, slots, cell)
+            for q in range(n_nodes):
+                if n_slot[q] > 0:
+                    reached = True
                     break
-                v = best[q, k]
-                take = (m <= beam or v < cut) if rnd == 0 else (m > beam and v == cut)
-                if take:
-                    act_node[c, n] = q
-                    act_back[c, n] = best_back[q, k]
-                    act_cost[c, n] = v
-                    act_pose[c, n, 0] = best_pose[q, k, 0]
-                    act_pose[c, n, 1] = best_pose[q, k, 1]
-                    act_pose[c, n, 2] = best_pose[q, k, 2]
-                    n += 1
-    for j in range(nt):
-        q = touched[j]
-        for k in range(n_slot[q]):
-            best[q, k] = INF
-            best_back[q, k] = -1
-        n_slot[q] = 0
-    act_n[c] = n
+        if not reached:
+            return back, final, c
+    return back, final, -1
 
 
-def backtrack(
-    act_node: np.ndarray, act_back: np.ndarray, act_cost: np.ndarray, act_n: np.ndarray
-) -> tuple[np.ndarray, float]:
+@njit(cache=True)
+def path_transitions(g, nodes):
+    """Transition cost into each bar of a path ``nodes (T,)``: ``(T,) float64`` (0 at bar 0) and
+    ``(T,) bool``, True where it is not a graph edge (costed on demand, plus the penalty)."""
+    n = nodes.shape[0]
+    cost = np.zeros(n)
+    offgraph = np.zeros(n, np.bool_)
+    for t in range(1, n):
+        p, q = nodes[t - 1], nodes[t]
+        cost[t] = _edge_cost(g.indptr, g.indices, g.costs, p, q)
+        offgraph[t] = cost[t] < 0
+        if offgraph[t]:
+            cost[t] = _offgraph_cost(g.out_feat, g.in_feat, g.blocks, g.weights, p, q)
+    return cost, offgraph
+
+
+def backtrack(back: np.ndarray, final: np.ndarray, slots: int) -> tuple[np.ndarray, float]:
     """Node per chain step ``(C,)`` of the cheapest final state, and its cost."""
-    last = act_node.shape[0] - 1
-    n = int(act_n[last])
-    i = int(np.argmin(act_cost[last, :n]))
-    cost = float(act_cost[last, i])
-    out = np.empty(last + 1, dtype=np.int64)
-    for c in range(last, -1, -1):
-        out[c] = act_node[c, i]
-        i = int(act_back[c, i])
+    s = int(np.argmin(final))
+    cost = float(final[s])
+    out = np.empty(back.shape[0], dtype=np.int64)
+    for c in range(back.shape[0] - 1, -1, -1):
+        out[c] = s // slots
+        s = int(back[c, s])
     return out, cost
+
+
+@njit(cache=True, fastmath=True)
+def data_terms(dot, zm_sq, zd_sq, sig_cost, signature, w_style, w_data):
+    """C_d in place of ``dot (T, N) float32`` (z_M·z_D): w_data·(w_style‖z_M − z_D‖ +
+    ``sig_cost[t, signature[n]]``), one pass over the matrix (``sig_cost`` already weighted;
+    every value is finite, so fastmath is safe and vectorises the square roots)."""
+    ws = np.float32(w_style)
+    wd = np.float32(w_data)
+    for t in range(dot.shape[0]):
+        row = dot[t]
+        sig = sig_cost[t]
+        zt = zm_sq[t]
+        for n in range(dot.shape[1]):
+            d2 = zt + zd_sq[n] - np.float32(2.0) * row[n]
+            row[n] = wd * (ws * np.sqrt(max(d2, np.float32(0.0))) + sig[signature[n]])
+    return dot
+
+
+@njit(cache=True)
+def variable_costs(data, var, parity, mirror_of, n_vars):
+    """``(V, N) float32``: per variable the sum of its bars' data rows ``data (T, N)``; a bar tied
+    with parity 1 scores each node's mirror (inf where the node has none)."""
+    n = data.shape[1]
+    out = np.zeros((n_vars, n), np.float32)
+    for t in range(data.shape[0]):
+        row = out[var[t]]
+        if parity[t] == 0:
+            for q in range(n):
+                row[q] += data[t, q]
+        else:
+            for q in range(n):
+                m = mirror_of[q]
+                row[q] += data[t, m] if m >= 0 else INF
+    return out

@@ -34,11 +34,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from dancegraph.embed import descriptor
+from dancegraph.errors import ModelFileError
 from dancegraph.graph import artifact, choreography
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays
 from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
-from dancegraph.rhythm.signatures import nearest_common, to_bits
+from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits
 from dancegraph.store import ObjectStore
 
 Progress = Callable[[str, float], None]
@@ -514,9 +515,16 @@ def compress_features(
 
 
 def build_arrays(
-    bars: BarSet, params: BuildParams | None = None, progress: Progress | None = None
+    bars: BarSet,
+    params: BuildParams | None = None,
+    progress: Progress | None = None,
+    learned: Callable[[np.ndarray], dict] | None = None,
 ) -> tuple[dict, list[str], dict]:
-    """Nodes, features and edges from ``bars``; returns ``(arrays, node_ids, manifest)``."""
+    """Nodes, features and edges from ``bars``; returns ``(arrays, node_ids, manifest)``.
+
+    ``learned``: maps the originals' descriptor style ``(Nb, 32)`` to learned ``style`` and
+    ``signature`` (either None) and manifest ``entry`` parts (``embed.learned.node_embeddings``).
+    """
     params = params or BuildParams()
     t0 = time.perf_counter()
     sk = bars.skeleton
@@ -536,6 +544,14 @@ def build_arrays(
     raw0 = descriptor.dance_descriptors(feats0["positions"], dur)
     stats = descriptor.fit_stats(raw0)
     style0 = descriptor.embed(raw0, stats)
+    embedding = {"version": descriptor.VERSION, "dance_stats": stats}
+    if learned is not None:
+        got = learned(style0)
+        embedding.update(got["entry"])
+        if got["signature"] is not None:
+            sigs = [COMMON_SIGNATURES[int(k)] for k in got["signature"]]
+        if got["style"] is not None:
+            style0 = got["style"]
 
     kinds = [np.zeros(nb, np.int8)]
     sources = [np.stack([np.arange(nb), np.full(nb, -1)], axis=1)]
@@ -604,8 +620,11 @@ def build_arrays(
     )
     feats = node_features(sk, all_root, all_rot, all_dur, params.window, lead) if n > nb else feats0
     all_root, all_rot = all_root[:, lead:], all_rot[:, lead:]  # nodes keep the bar itself
-    style = descriptor.embed(descriptor.dance_descriptors(feats["positions"], all_dur), stats)
-    style[:nb] = style0
+    if "style_model" in embedding:  # augmentations keep the learned style of their source bar
+        style = style0[np.concatenate(sources)[:, 0]]
+    else:
+        style = descriptor.embed(descriptor.dance_descriptors(feats["positions"], all_dur), stats)
+        style[:nb] = style0
     if progress:
         progress("features", 1.0)
 
@@ -699,7 +718,7 @@ def build_arrays(
         "tags": tag_names,
         "skeleton": sk.to_dict(),
         "params": asdict(params),
-        "embedding": {"version": descriptor.VERSION, "dance_stats": stats},
+        "embedding": embedding,
         "feature_blocks": blocks,
         "pc_blocks": pc_blocks,
         "main_joints": main_joint_keys(sk),
@@ -771,16 +790,43 @@ def bars_from_dataset(
 
 
 def build_graph(
-    dataset, store: ObjectStore, params: BuildParams | None = None, progress: Progress | None = None
+    dataset,
+    store: ObjectStore,
+    params: BuildParams | None = None,
+    progress: Progress | None = None,
+    style_model=None,
+    rhythm_model=None,
 ) -> str:
-    """Build the graph of an imported dataset and store it as a new version; returns its key."""
+    """Build the graph of an imported dataset and store it as a new version; returns its key.
+
+    ``style_model`` / ``rhythm_model``: loaded learned models (``embed.model.load_model``) for
+    the node styles / signatures instead of the descriptor and the dataset's signatures.
+    """
     params = params or BuildParams()
     bars = bars_from_dataset(dataset, params.frames_per_bar, params.window + 1, progress)
-    arrays, ids, manifest = build_arrays(bars, params, progress)
+    learned = None
+    if style_model is not None or rhythm_model is not None:
+        from functools import partial
+
+        from dancegraph.embed.learned import node_embeddings, store_models
+
+        store_models(store, style_model, rhythm_model)
+        learned = partial(
+            node_embeddings,
+            dataset,
+            bars.clips,
+            bars.clip,
+            bars.bar,
+            style_model=style_model,
+            rhythm_model=rhythm_model,
+        )
+    arrays, ids, manifest = build_arrays(bars, params, progress, learned)
     manifest["dataset"] = {
         "name": dataset.name,
         "version": dataset.version,
         "licence": getattr(dataset, "licence", None),
+        # carried into every result's timeline.json provenance (CMU asks for it in derived works)
+        "acknowledgement": dataset.meta.get("acknowledgement"),
     }
     return artifact.write_graph(store, dataset.name, arrays, manifest, node_ids=ids)
 
@@ -790,14 +836,30 @@ def build_dataset_graph(
     name: str,
     params: BuildParams | None = None,
     progress: Progress | None = None,
+    embedding: str | None = None,
+    rhythm_model: str | None = None,
 ) -> dict:
     """Load dataset ``name`` from ``store``, build and store its graph; returns a report with the
-    artifact key, version, node/edge counts, degree distribution and build seconds."""
+    artifact key, version, node/edge counts, degree distribution and build seconds.
+
+    ``embedding``: 'descriptor' (default) or the path of a learned style model file;
+    ``rhythm_model``: the path of a learned rhythm model file (node signatures). Both are
+    validated before any work (``ModelFileError``).
+    """
     from dancegraph.motion.dataset import load_dataset
 
     t0 = time.perf_counter()
+    style = rhythm = None
+    if embedding not in (None, "descriptor") or rhythm_model:
+        from dancegraph.embed.model import load_model  # torch: only for learned models
+
+        style = load_model(embedding) if embedding not in (None, "descriptor") else None
+        rhythm = load_model(rhythm_model) if rhythm_model else None
+    for m, kind in ((style, "style"), (rhythm, "rhythm")):
+        if m is not None and m.kind != kind:
+            raise ModelFileError(f"{m.path} is a {m.kind} model, expected a {kind} model")
     dataset = load_dataset(store, name)
-    key = build_graph(dataset, store, params, progress)
+    key = build_graph(dataset, store, params, progress, style, rhythm)
     graph = artifact.load_graph(store.path(key))
     return {
         "key": key,

@@ -32,29 +32,8 @@ def breakdown(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternat
     user = np.zeros(n_bars)
     if ctx["recreate"] is not None:
         user += RECREATE_WEIGHT * (np.asarray(graph.motif)[nodes] != ctx["recreate"])
-    trans = np.zeros(n_bars)
-    offgraph = np.zeros(n_bars, dtype=bool)
-    indptr, indices = ctx["indptr"], ctx["indices"]
-    for t in range(1, n_bars):
-        p, q = int(nodes[t - 1]), int(nodes[t])
-        c = _dp._edge_cost(indptr, indices, ctx["costs"], p, q)
-        if c < 0:
-            offgraph[t] = True
-            c = _dp.pair_cost(
-                indptr,
-                indices,
-                ctx["costs"],
-                ctx["exit"],
-                ctx["entry"],
-                ctx["style"],
-                ctx["blocks"],
-                ctx["w_pose"],
-                ctx["w_style"],
-                ctx["offgraph"],
-                p,
-                q,
-            )
-        trans[t] = w.transition * float(c)
+    trans, offgraph = _dp.path_transitions(ctx["dp"], nodes)
+    trans *= w.transition
     structure = np.zeros(n_bars)
     violations = []
     mirror_of = np.asarray(graph.mirror_of)

@@ -22,16 +22,18 @@ are not used), weights, motif pins, a target motif signature, re-creating a take
 Alternatives: the search runs again with a penalty on nodes (and their mirrors) used by earlier
 alternatives, so alternatives share few nodes; each reports its own unpenalised cost.
 
-Speed and its price: the DP keeps a beam of the ``BEAM`` cheapest states per chain step (every
-state on graphs of up to ``EXACT_NODES`` nodes, where it is the exact Viterbi when no ties or
-trajectory terms are involved) and runs in a numba kernel (``_dp``). A state's copies and root pose
-follow its own best history (one history per node, as Viterbi keeps), so tied copies and
-trajectories are costed exactly along the paths kept, not over all histories. With a stage or
-waypoints a node keeps up to ``POSITION_SLOTS`` states that end in different places, and states
-that can no longer reach a later waypoint at the graph's top speed are penalised early; with
-structure ties on graphs of up to ``EXACT_NODES`` nodes, up to ``POSITION_SLOTS`` states with
-different predecessors (k-best histories: on the salsa graph this lowers the cost of a 148 s song
-by about a quarter, at about 3× the search time).
+Speed and exactness: the DP keeps every node's cheapest state (no beam) and runs in a numba
+kernel (``_dp``) over the CSR edges, so without ties or trajectory terms it is the exact Viterbi.
+A state's copies and root pose follow its own best history (one history per node, as Viterbi
+keeps), so tied copies and trajectories are costed exactly along the paths kept, not over all
+histories; each distinct transition between copies is costed once per state, times its count
+(with structure ties the result is the best path this DP keeps, not a proven global optimum).
+States that can no longer reach a later waypoint at the graph's top speed are penalised early.
+On graphs of up to ``KBEST_NODES`` nodes a node keeps up to ``POSITION_SLOTS`` states: with a
+stage or waypoints, states that end in different places; with structure ties, states with
+different predecessors (k-best histories: on the salsa graph this lowers the cost of a 148 s
+song by about a quarter, at about 3× the search time). Larger graphs keep one state per node
+(their many nodes already offer the variety; four states would cost four times the time).
 Stage and waypoint terms are effectively hard (1e5 per metre); a best path that still misses one
 raises ``SpecError(code='constraint_conflict')`` naming it. A target motif signature is followed
 by planning a motif per bar whose histogram matches the target (an optimal assignment) and
@@ -54,8 +56,9 @@ from dancegraph.motion.skeleton import Motion
 from dancegraph.rhythm.signatures import COMMON_DISTANCES
 from dancegraph.spec import Spec
 
-BEAM = 1024  # states per chain step on large graphs
-EXACT_NODES = 4096  # graphs up to this size are searched exactly (beam = every node)
+KBEST_NODES = 4096  # graphs up to this size keep k-best histories under structure ties
+STATE_BUDGET = 1 << 26  # most back pointers (chain steps × nodes × slots) one pass stores
+MEMO_BUDGET = 1 << 23  # most (charged transition, state) costs kept across passes
 DENSE_LIMIT = 64
 STAGE_WEIGHT = 1.0e5  # per metre outside the stage: effectively hard
 WAYPOINT_WEIGHT = 1.0e5  # per metre beyond a waypoint's tolerance: effectively hard
@@ -239,38 +242,103 @@ def _match_nodes(
 # the search
 
 
-def music_style(music: dict) -> np.ndarray:
-    """Descriptor style of each music bar ``(T, 32)``."""
+def music_style(music: dict, graph: MotionGraph | None = None) -> np.ndarray:
+    """Style of each music bar ``(T, 32)`` in ``graph``'s style space.
+
+    The descriptor style (``descriptor-v1``), bridged into the learned space when the graph was
+    built with a learned style model. With a learned rhythm model in the graph, the bars' top-3
+    signatures ``music["topk"]`` are replaced by that model's (``embed.learned``), so the rhythm
+    term and the node signatures come from the same model.
+    """
     dur = music["bars"][:, 1] - music["bars"][:, 0]
-    if music["onset"].ndim == 3 and music["onset"].shape[0] == music["n"]:
-        return descriptor.embed_music(dur, music["onset"])
-    return descriptor.embed(
-        np.column_stack(
-            [np.log2(240.0 / np.maximum(dur, 1e-3) / 120.0)] + [np.zeros(music["n"])] * 7
+    onset = music["onset"]
+    if onset.ndim == 3 and onset.shape[0] == music["n"]:
+        z = descriptor.embed_music(dur, onset)
+    else:
+        z = descriptor.embed(
+            np.column_stack(
+                [np.log2(240.0 / np.maximum(dur, 1e-3) / 120.0)] + [np.zeros(music["n"])] * 7
+            )
         )
-    )
+    entry = (graph.manifest.get("embedding") or {}) if graph is not None else {}
+    if "style_model" not in entry and "rhythm_model" not in entry:
+        return z
+    from dancegraph.embed import learned  # torch: only for graphs with learned models
+
+    root = graph.path.parents[2] if graph.path is not None else None  # the object store
+    topk = learned.music_topk(entry, root, onset, z)
+    if topk is not None:
+        music["topk"] = topk
+    return learned.music_style(entry, z)
 
 
 def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: Spec) -> np.ndarray:
     """C_d for every bar and node ``(T, N) float32``: λ10·(λ12‖z_M − z_D‖ + λ13 min_k G_r).
 
     ``zm (T, 32)`` music style; ``sig_cost (T, 13)`` min over the bar's top-K signatures of the
-    distance to each common signature. Computed in place, float32 (the hot path of a query).
+    distance to each common signature. One matrix product, then one fused pass (the hot path of
+    a query).
     """
     w = spec.weights
-    zd = np.asarray(graph.style, dtype=np.float32)
-    out = zm.astype(np.float32) @ zd.T
-    out *= -2.0
-    out += _style_sq(graph)[None, :]
-    out += (zm.astype(np.float32) ** 2).sum(1)[:, None]
-    np.maximum(out, 0.0, out=out)
-    np.sqrt(out, out=out)
-    out *= w.style
-    out += np.take(
-        (w.rhythm * sig_cost).astype(np.float32), np.asarray(graph.signature, dtype=np.intp), axis=1
+    zm = zm.astype(np.float32)
+    dot = zm @ np.asarray(graph.style, dtype=np.float32).T
+    return _dp.data_terms(
+        dot,
+        (zm * zm).sum(1),
+        _style_sq(graph),
+        (w.rhythm * sig_cost).astype(np.float32),
+        _ro(graph.signature, np.int8),
+        float(w.style),
+        float(w.data),
     )
-    out *= w.data
-    return out
+
+
+def _in_edges(
+    graph: MotionGraph, threshold: float, indptr: np.ndarray, indices: np.ndarray, costs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The same edges by target (``in_ptr (N+1,)``, ``in_src (E,) int32``, ``in_cost (E,)``) for
+    the DP's pull pass, cached on the graph per threshold."""
+    cache = graph.__dict__.setdefault("_cache", {})
+    key = ("in_edges", float(threshold))
+    if key not in cache:
+        order = np.argsort(indices, kind="stable")
+        in_ptr = np.zeros(graph.n_nodes + 1, dtype=np.int64)
+        np.cumsum(np.bincount(indices, minlength=graph.n_nodes), out=in_ptr[1:])
+        src = np.repeat(np.arange(graph.n_nodes, dtype=np.int32), np.diff(indptr))
+        cache[key] = (
+            _ro(in_ptr, np.int64),
+            _ro(src[order], np.int32),
+            _ro(costs[order], np.float32),
+        )
+    return cache[key]
+
+
+def _feature_rows(graph: MotionGraph) -> dict[str, np.ndarray]:
+    """``out_feat`` and ``in_feat`` of ``_dp.Graph``: per node one row of exit (entry) features
+    and style (cached on the graph)."""
+    cache = graph.__dict__.setdefault("_cache", {})
+    if "feature_rows" not in cache:
+        style = np.asarray(graph.style, dtype=np.float32)
+        cache["feature_rows"] = {
+            side: _ro(np.concatenate([np.asarray(f, dtype=np.float32), style], axis=1), np.float32)
+            for side, f in (("out_feat", graph.exit_pc), ("in_feat", graph.entry_pc))
+        }
+    return cache["feature_rows"]
+
+
+def _motion_record(graph: MotionGraph) -> np.ndarray:
+    """``(N, 8)`` per node: dx, dz, dyaw, cos dyaw, sin dyaw, radius, 0, 0 (``_dp.Graph.motion``:
+    one cache line per node for the trajectory terms; cached on the graph)."""
+    cache = graph.__dict__.setdefault("_cache", {})
+    if "motion" not in cache:
+        disp = np.asarray(graph.disp, dtype=np.float64)
+        rec = np.zeros((graph.n_nodes, 8))
+        rec[:, :3] = disp
+        rec[:, 3] = np.cos(disp[:, 2])
+        rec[:, 4] = np.sin(disp[:, 2])
+        rec[:, 5] = graph.radius
+        cache["motion"] = _ro(rec, np.float64)
+    return cache["motion"]
 
 
 def _style_sq(graph: MotionGraph) -> np.ndarray:
@@ -297,17 +365,11 @@ def bar_terms(
     return style, rhythm
 
 
-def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None) -> SearchResult:
-    """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars.
-
-    ``beam``: states kept per chain step; default exact (every node) up to ``EXACT_NODES``
-    nodes, else ``BEAM``.
-    """
-    if beam is None:
-        beam = POSITION_SLOTS * graph.n_nodes if graph.n_nodes <= EXACT_NODES else BEAM
+def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
+    """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
-    zm = music_style(music)
+    zm = music_style(music, graph)
     sig_cost = COMMON_DISTANCES[music["topk"]].min(axis=1)  # (T, 13)
     data = data_costs(graph, zm, sig_cost, spec)
     # restrictions: a mask for all bars, and masks of single bars (None: everything allowed)
@@ -409,7 +471,7 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
     # the root is the smallest bar of its group (union keeps the smaller root): parity 0 there
     uniq, var = np.unique(roots, return_inverse=True)
     n_vars = uniq.size
-    mirror_of = np.asarray(graph.mirror_of, dtype=np.int64)
+    mirror_of = _ro(graph.mirror_of, np.int64)
     has_mirror = mirror_of >= 0
     safe_mirror = np.where(has_mirror, mirror_of, 0)
 
@@ -417,12 +479,7 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
     if n_vars == n_bars and not parity.any():
         unary = data  # no ties: one variable per bar
     else:
-        unary = np.zeros((n_vars, n_nodes), dtype=np.float32)
-        for t in range(n_bars):
-            if parity[t] == 0:
-                unary[var[t]] += data[t]
-            else:
-                unary[var[t]] += np.where(has_mirror, data[t][safe_mirror], np.inf)
+        unary = _dp.variable_costs(data, var, parity, mirror_of, n_vars)
     var_ok: dict[int, np.ndarray] = {}
     for t in range(n_bars):
         if parity[t] == 0 and every_ok is None and t not in bar_ok:
@@ -480,22 +537,8 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
             field=_blame(spec, t),
         )
 
-    # chain of first appearances and the copies between them
-    first_bar = np.full(n_vars, n_bars, dtype=np.int64)
-    np.minimum.at(first_bar, var, np.arange(n_bars))
-    is_first = first_bar[var] == np.arange(n_bars)
-    chain_bar = np.nonzero(is_first)[0]
-    chain_var = var[chain_bar]
-    var_chain = np.empty(n_vars, dtype=np.int64)
-    var_chain[chain_var] = np.arange(chain_bar.size)
-    gap_ptr = np.zeros(chain_bar.size + 2, dtype=np.int64)
-    gap_bar = np.nonzero(~is_first)[0]
-    # copies before chain step c are those between chain_bar[c-1] and chain_bar[c]
-    owner = np.searchsorted(chain_bar, gap_bar)  # chain step that follows the copy (C: trailing)
-    counts = np.bincount(owner, minlength=chain_bar.size + 1)
-    gap_ptr[1:] = np.cumsum(counts)
-    gap_var = var[gap_bar]
-    gap_par = parity[gap_bar].astype(np.int64)
+    chain, step = _chain(var, parity)
+    n_chain = chain.var.size
 
     # stage, waypoints
     stage = np.array([1.0, 0.0, 1.0, 0.0])
@@ -529,69 +572,81 @@ def search(graph: MotionGraph, analysis, spec: Spec, *, beam: int | None = None)
     )
 
     params = graph.manifest.get("params", {})
-    offgraph = float(spec.transition_threshold)
+    on = spec.stage is not None or bool(spec.waypoints)
+    # on small graphs, several states per node: different root positions (trajectory terms) or
+    # different predecessors (tied copies, whose costs depend on the history); the back pointers
+    # (C × N × slots int32) stay within STATE_BUDGET
+    slots = POSITION_SLOTS if n_nodes <= KBEST_NODES and (on or n_vars < n_bars) else 1
+    slots = max(1, min(slots, STATE_BUDGET // max(1, n_chain * n_nodes)))
+    in_ptr, in_src, in_cost = _in_edges(graph, spec.transition_threshold, indptr, indices, costs)
+    dp_graph = _dp.Graph(
+        indptr=_ro(indptr, np.int64),
+        indices=_ro(indices, np.int32),
+        costs=_ro(costs, np.float32),
+        in_ptr=in_ptr,
+        in_src=in_src,
+        in_cost=in_cost,
+        # transitions that are not edges are costed from the compressed features
+        **_feature_rows(graph),
+        blocks=_ro(graph.manifest["pc_blocks"], np.int64),
+        mirror_of=mirror_of,
+        motion=_motion_record(graph),
+        path=_ro(graph.root_path, np.float64),
+        weights=np.array(
+            [
+                float(params.get("w_pose", 1.0)),
+                float(params.get("w_style", 1.5)),
+                float(spec.transition_threshold),
+            ]
+        ),
+    )
+    reach = 0.0
+    if n_nodes:
+        reach = float(max(np.hypot(graph.disp[:, 0], graph.disp[:, 1]).max(), np.max(graph.radius)))
+    track = _dp.Track(
+        on=on,
+        cell=POSITION_CELL if on else -1.0,
+        start=start,
+        stage=np.append(stage, STAGE_WEIGHT),
+        wp_bar=wp[0],
+        wp_idx=wp[1],
+        wp_pos=wp[2],
+        wp_tol=wp[3],
+        wp_w=WAYPOINT_WEIGHT,
+        reach=reach,
+    )
     ctx = {
         "graph": graph,
-        "indptr": _ro(indptr, np.int64),
-        "indices": _ro(indices, np.int32),
-        "costs": _ro(costs, np.float32),
-        "mirror_of": _ro(mirror_of, np.int64),
-        "w_pose": float(params.get("w_pose", 1.0)),
-        "w_style": float(params.get("w_style", 1.5)),
-        "offgraph": offgraph,
+        "dp": dp_graph,
+        "chain": chain,
+        "track": track,
+        "slots": slots,
+        "step": step,
+        "parity": parity,
         "stage": stage,
         "start": start,
         "wp": wp,
-        # several states per node (different root positions) when the trajectory matters
-        "track": spec.stage is not None or bool(spec.waypoints),
-        # several histories per node: different root positions (trajectory terms) or different
-        # predecessors (tied copies, whose costs depend on the history)
-        "slots": POSITION_SLOTS
-        if (
-            spec.stage is not None or spec.waypoints or (n_vars < n_bars and n_nodes <= EXACT_NODES)
-        )
-        else 1,
+        "radius": _ro(graph.radius, np.float64),
+        "root_path": dp_graph.path,
         "zm": zm,
         "sig_cost": sig_cost,
         "recreate": recreate,
         # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
         "dense": n_allowed <= DENSE_LIMIT,
-        # transitions that are not edges are costed from the compressed features
-        "exit": _ro(graph.exit_pc, np.float32),
-        "entry": _ro(graph.entry_pc, np.float32),
-        "style": _ro(graph.style, np.float32),
-        "blocks": _ro(graph.manifest["pc_blocks"], np.int64),
-        "disp": _ro(graph.disp, np.float64),
-        "radius": _ro(graph.radius, np.float64),
-        "root_path": _ro(graph.root_path, np.float64),
-        "reach": float(
-            max(np.hypot(graph.disp[:, 0], graph.disp[:, 1]).max(), np.max(graph.radius))
-        )
-        if graph.n_nodes
-        else 0.0,
     }
+    # per state the cost of each charged transition, kept across the passes (alternatives)
+    n_memo = chain.charge_n.size if chain.charge_n.size * n_nodes * slots <= MEMO_BUDGET else 0
+    ctx["memo"] = (
+        np.full((n_nodes * slots, n_memo, 2), -1, dtype=np.int32),
+        np.zeros((n_nodes * slots, n_memo), dtype=np.float32),
+    )
     alternatives: list[Alternative] = []
     bars_per_var = np.bincount(var, minlength=n_vars).astype(np.float32)
     penalty = np.zeros(n_nodes, dtype=np.float32)
 
     def run_with(unary_costs: np.ndarray) -> np.ndarray:
         # one DP pass over the tied chain; only the per-variable costs change between passes
-        return _run(
-            ctx,
-            unary_costs,
-            chain_var,
-            chain_bar,
-            gap_ptr,
-            gap_bar,
-            gap_var,
-            gap_par,
-            var_chain,
-            beam,
-            spec,
-            var,
-            parity,
-            mirror_of,
-        )
+        return _run(ctx, unary_costs, spec)
 
     for k in range(spec.alternatives):
         # the reuse penalty counts every bar a variable stands for
@@ -770,77 +825,99 @@ def _target_signature(graph: MotionGraph, target: str, field_name: str) -> np.nd
     return choreography.motif_signature(choreography.take_motif_sequence(graph, target), k)
 
 
-def _run(
-    ctx,
-    unary,
-    chain_var,
-    chain_bar,
-    gap_ptr,
-    gap_bar,
-    gap_var,
-    gap_par,
-    var_chain,
-    beam,
-    spec,
-    var,
-    parity,
-    mirror_of,
-) -> np.ndarray:
+def _chain(var: np.ndarray, parity: np.ndarray) -> tuple[_dp.Chain, np.ndarray]:
+    """The DP's chain for bars tied to variables ``var (T,)`` with parities ``parity (T,)``, and
+    the chain step of each bar ``(T,)``.
+
+    Chain steps are the variables' first appearances in song order; the other bars are copies.
+    Transitions between consecutive bars, as (step, parity) pairs: a chain bar's incoming one is
+    relaxed along graph edges, weighted by its count in the song; every other distinct one is
+    charged once, times its count, to the states of the later of its two steps (their history
+    decides both ends).
+    """
+    n_bars = var.size
+    first_bar = np.full(int(var.max()) + 1, n_bars, dtype=np.int64)
+    np.minimum.at(first_bar, var, np.arange(n_bars))
+    is_first = first_bar[var] == np.arange(n_bars)
+    chain_bar = np.nonzero(is_first)[0]
+    n_chain = chain_bar.size
+    var_chain = np.empty(first_bar.size, dtype=np.int64)
+    var_chain[var[chain_bar]] = np.arange(n_chain)
+    step = var_chain[var]
+    gap_bar = np.nonzero(~is_first)[0]
+    trans = np.column_stack([step[:-1], parity[:-1], step[1:], parity[1:]]).astype(np.int64)
+    count = np.ones(0, dtype=np.int64)
+    if n_bars > 1:
+        trans, count = np.unique(trans, axis=0, return_counts=True)
+    into = np.column_stack(
+        [
+            step[chain_bar[1:] - 1],
+            parity[chain_bar[1:] - 1],
+            step[chain_bar[1:]],
+            np.zeros(n_chain - 1, dtype=np.int64),  # a first appearance has parity 0
+        ]
+    )
+    relaxed = (trans[:, None, :] == into[None, :, :]).all(axis=2)  # (distinct, chain bars)
+    relax_n = np.ones(n_chain)
+    relax_n[1:] = (count[:, None] * relaxed).sum(axis=0)
+    charged = ~relaxed.any(axis=1)
+    trans, count = trans[charged], count[charged]
+    when = np.maximum(trans[:, 0], trans[:, 2]) + 1
+    order = np.argsort(when, kind="stable")
+    trans, count, when = trans[order], count[order], when[order]
+
+    def col(a: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(a, dtype=np.int64)
+
+    chain = _dp.Chain(
+        var=col(var[chain_bar]),
+        bar=col(chain_bar),
+        # copies before chain step c lie between chain_bar[c-1] and chain_bar[c] (C: trailing)
+        gap_ptr=_ptr(np.searchsorted(chain_bar, gap_bar), n_chain),
+        gap_bar=col(gap_bar),
+        gap_step=col(step[gap_bar]),
+        gap_par=col(parity[gap_bar]),
+        charge_ptr=_ptr(when, n_chain),
+        charge_a=col(trans[:, 0]),
+        charge_pa=col(trans[:, 1]),
+        charge_b=col(trans[:, 2]),
+        charge_pb=col(trans[:, 3]),
+        charge_n=count.astype(np.float64),
+        relax_n=relax_n,
+    )
+    return chain, step
+
+
+def _ptr(owner: np.ndarray, n_chain: int) -> np.ndarray:
+    """``(C+2,)`` offsets of the entries owned by each chain step 0..C (``owner`` sorted)."""
+    ptr = np.zeros(n_chain + 2, dtype=np.int64)
+    ptr[1:] = np.cumsum(np.bincount(owner, minlength=n_chain + 1))
+    return ptr
+
+
+def _run(ctx: dict, unary: np.ndarray, spec: Spec) -> np.ndarray:
     """One forward pass and backtrack; returns the node of every song bar ``(T,)``."""
-    graph = ctx["graph"]
-    n_nodes = graph.n_nodes
-    beam = int(min(beam, n_nodes * ctx["slots"]))
-    wp_bar, wp_idx, wp_pos, wp_tol = ctx["wp"]
-    act_node, act_back, act_cost, act_n, dead = _dp.forward(
+    back, final, dead = _dp.forward(
         np.ascontiguousarray(unary, dtype=np.float32),
-        chain_var.astype(np.int64),
-        chain_bar.astype(np.int64),
-        gap_ptr,
-        gap_bar.astype(np.int64),
-        gap_var.astype(np.int64),
-        gap_par,
-        var_chain,
-        ctx["indptr"],
-        ctx["indices"],
-        ctx["costs"],
-        ctx["exit"],
-        ctx["entry"],
-        ctx["style"],
-        ctx["blocks"],
-        ctx["mirror_of"],
-        ctx["disp"],
-        ctx["radius"],
-        ctx["root_path"],
-        ctx["w_pose"],
-        ctx["w_style"],
+        ctx["chain"],
+        ctx["dp"],
+        ctx["track"],
         float(spec.weights.transition),
-        ctx["offgraph"],
-        ctx["start"],
-        ctx["stage"],
-        STAGE_WEIGHT,
-        wp_bar,
-        wp_idx,
-        wp_pos,
-        wp_tol,
-        WAYPOINT_WEIGHT,
-        beam,
         ctx["dense"],
-        int(ctx["slots"]),
-        POSITION_CELL if ctx["track"] else -1.0,
-        ctx["reach"],
-        bool(ctx["track"]),
+        ctx["slots"],
         DENSE_LIMIT,
+        *ctx["memo"],
     )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(
-            f"no path reaches bar {int(chain_bar[dead])}",
+            f"no path reaches bar {int(ctx['chain'].bar[dead])}",
             code="constraint_conflict",
             field="include",
         )
-    chain_nodes, _ = _dp.backtrack(act_node, act_back, act_cost, act_n)
-    nodes = chain_nodes[var_chain[var]]
-    flip = parity == 1
-    nodes[flip] = mirror_of[nodes[flip]]
+    chain_nodes, _ = _dp.backtrack(back, final, ctx["slots"])
+    nodes = chain_nodes[ctx["step"]]
+    flip = ctx["parity"] == 1
+    nodes[flip] = ctx["dp"].mirror_of[nodes[flip]]
     return nodes
 
 

@@ -158,8 +158,10 @@ class LocalGraphStore(GraphStoreClient):
                 "stats": graph.stats(),
                 "created": manifest.get("created"),
                 "params": manifest.get("params", {}),
-                "embedding_details": {
-                    k: v for k, v in (manifest.get("embedding") or {}).items() if k != "dance_stats"
+                "embedding_details": {  # which models, not their numbers (stats, bridge)
+                    k: v
+                    for k, v in (manifest.get("embedding") or {}).items()
+                    if k not in ("dance_stats", "bridge")
                 },
                 "dataset": manifest.get("dataset", {}),
                 "tags": graph.tags,

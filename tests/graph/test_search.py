@@ -407,3 +407,33 @@ def test_warm_up_runs_the_kernel_on_a_tiny_graph():
     from dancegraph.graph.search import warm_up
 
     warm_up()  # the graph store calls this at start; it must work without any dataset
+
+
+def test_search_is_the_exact_viterbi_on_a_medium_graph(demo_graph):
+    # the demo graph tiled to about 6,400 nodes and 50k edges (as the search benchmark builds its
+    # graphs): more nodes than any beam the search used to keep, so a pruned search can miss
+    from bench.bench_search import scale_graph
+    from dancegraph.graph.search import _music_arrays, data_costs, edges_below, music_style
+    from dancegraph.rhythm.signatures import COMMON_DISTANCES
+
+    arrays, ids, manifest = scale_graph(demo_graph, 50_000)
+    g = graph_from_arrays(arrays, dict(manifest, name="tiled", version="t"))
+    g.node_ids[:] = ids
+    g._index = {n: i for i, n in enumerate(ids)}
+    assert g.n_nodes > 6000
+    song = synthetic_analysis("ABCDE", bars_per_phrase=4)
+    spec = _spec(alternatives=1, structure={"repeat": False, "mirror": False})
+    alt = search(g, song, spec).alternatives[0]
+
+    # plain Viterbi over every node and edge, in float64
+    music = _music_arrays(song)
+    data = data_costs(g, music_style(music, g), COMMON_DISTANCES[music["topk"]].min(axis=1), spec)
+    indptr, indices, costs = edges_below(g, spec.transition_threshold)
+    src = np.repeat(np.arange(g.n_nodes), np.diff(indptr))
+    best = data[0].astype(np.float64)
+    for t in range(1, song.n_bars):
+        reach = np.full(g.n_nodes, np.inf)
+        np.minimum.at(reach, indices, best[src] + spec.weights.transition * costs)
+        best = reach + data[t]
+    assert not any(b.get("offgraph") for b in alt.per_bar)
+    assert alt.cost == pytest.approx(best.min(), rel=1e-5)

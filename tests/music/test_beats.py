@@ -14,7 +14,12 @@ import pytest
 
 from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
-from dancegraph.music.beats import beat_f_measure, mend_half_beat_slips, track_beats
+from dancegraph.music.beats import (
+    beat_f_measure,
+    mend_half_beat_slips,
+    mend_swing_off_beats,
+    track_beats,
+)
 from dancegraph.music.decode import load_audio
 from dancegraph.music.generator import generate, random_config
 from dancegraph.music.tempo import (
@@ -136,6 +141,43 @@ def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
     assert np.all(pos[0:48:4] == 1) and np.all(pos[50:96:4] == 1)
     assert pos[26] != 1
     assert set(np.unique(pos)) == {1, 2, 3, 4}
+
+
+def test_swung_off_beat_grid_is_moved_onto_the_beat() -> None:
+    """Onsets on the beats and on the swung off-beats (0.62): a grid on the off-beats sees the
+    next onset at 0.38 of its beat, which swing never does, and is moved there; a grid on the
+    beats, and straight eighths tracked on the off-beats (no swing to tell), are kept."""
+    fps, period = 50.0, 0.6
+    onset = np.zeros(int(40 * fps))
+    beats = np.arange(1.0, 38.0, period)
+    for t in beats:
+        onset[int(round(t * fps))] += 1.0
+        onset[int(round((t + 0.62 * period) * fps))] += 0.8
+    mended, shift = mend_swing_off_beats(beats + 0.62 * period, onset)
+    assert 0.3 < shift < 0.45
+    assert beat_f_measure(beats, mended, tol=0.03) > 0.95
+    kept, shift = mend_swing_off_beats(beats, onset)
+    assert shift == 0.0 and np.array_equal(kept, beats)
+    straight = np.zeros_like(onset)
+    for t in beats:
+        straight[int(round(t * fps))] += 1.0
+        straight[int(round((t + 0.5 * period) * fps))] += 0.8
+    kept, shift = mend_swing_off_beats(beats + 0.5 * period, straight)
+    assert shift == 0.0
+
+
+def test_swung_hard_song_tracked_on_the_off_beats_is_mended() -> None:
+    """Hard swung 4/4 song (off-beat drums, syncopated bass, drumless parts): BeatNet and
+    librosa both lock onto the swung off-beats (beat F 0.31). The swing test moves the grid
+    onto the beat, and the bars come from the harmony there, not from the network's downbeat
+    activation, which belongs to its own (off-beat) grid (downbeat F 0.22 with it)."""
+    cfg = random_config(5012, hard=True)
+    cfg.swing = 0.156
+    song = generate(cfg)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_swing_mended") for w in res.warnings)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.85
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.8
 
 
 def test_bar_count_restarts_cheaply_where_the_beat_grid_glitches() -> None:

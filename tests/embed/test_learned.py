@@ -1,0 +1,245 @@
+"""Learned embeddings: training, model files, resume, bad input, graph build and search with them.
+
+Everything runs on a tiny generated paired set (2 songs × 2 sections × 4 bars) for 1–2 epochs:
+these tests check the machinery, not the accuracy (bench/bench_embed.py measures that).
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from dancegraph.embed import model as model_mod
+from dancegraph.embed.data import TrainingDataError, load_training_set, write_paired_set
+from dancegraph.embed.model import load_model
+from dancegraph.embed.train import train
+from dancegraph.errors import ModelFileError
+
+QUIET = None  # no progress lines in tests
+
+
+@pytest.fixture(scope="module")
+def paired(tmp_path_factory):
+    return write_paired_set(tmp_path_factory.mktemp("paired"), n_songs=2, bars=4, seed=0)
+
+
+@pytest.fixture(scope="module")
+def style_run(paired, tmp_path_factory):
+    out = tmp_path_factory.mktemp("style")
+    summary = train("style", paired, out, epochs=2, phase1_epochs=1, progress=QUIET)
+    return out, summary
+
+
+@pytest.fixture(scope="module")
+def rhythm_run(paired, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rhythm")
+    summary = train("rhythm", paired, out, epochs=2, progress=QUIET)
+    return out, summary
+
+
+def test_paired_set_has_styles_signatures_and_pairs(paired):
+    ts = load_training_set(paired, "rhythm")
+    assert len(ts.music) == len(ts.dance) == 16 and ts.pairs.shape == (16, 2)
+    assert set(ts.music.label) == set(ts.dance.label) and len(set(ts.music.label)) >= 2
+    # the dancer dances the song's own bar signatures
+    for m, d in ts.pairs:
+        assert np.array_equal(ts.music.bits[m], ts.dance.bits[d])
+    assert np.stack(ts.music.rhythm_x).shape == (16, 2, 200)
+    assert np.stack(ts.dance.rhythm_x).shape == (16, 5, 60)
+
+
+def test_style_training_writes_a_loadable_versioned_model(style_run, paired):
+    out, summary = style_run
+    path = out / summary["path"]
+    assert path.name == f"{summary['version']}.dgm" and summary["kind"] == "style"
+    m = load_model(path)
+    assert m.sha256 == summary["sha256"] and m.version.startswith("style-")
+    assert m.header["format"] == model_mod.FORMAT
+    assert m.header["training"]["epochs"] == 2
+    assert len(m.header["config"]["classes"]) >= 2
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["phase"] for r in rows] == [1, 2]  # unpaired, then paired with the MSE term
+    assert all("pair_dist_train" in r and "music_acc_train" in r for r in rows)
+    assert load_model(path) is m  # loaded once per process
+    # inference shapes: 8-s windows of a song's log-mel, phrases of dance
+    mel = np.full((96, 3000), -60.0, np.float32)
+    assert m.music_style(mel, np.array([0.0, 2.0, 29.0])).shape == (3, 32)
+    assert m.dance_style(np.zeros((2, 3, 18, 240), np.float32)).shape == (2, 32)
+
+
+def test_rhythm_model_gives_top3_probabilities(rhythm_run):
+    out, summary = rhythm_run
+    m = load_model(out / summary["path"])
+    p = m.signature_scores("music", np.zeros((4, 2, 200)), np.zeros((4, 32)))
+    assert p.shape == (4, 13) and np.allclose(p.sum(1), 1.0, atol=1e-5)
+    with pytest.raises(ModelFileError, match="not a style model"):
+        m.dance_style(np.zeros((1, 3, 18, 240)))
+
+
+def test_resume_continues_to_the_same_weights(paired, tmp_path, rhythm_run):
+    _, straight = rhythm_run
+    out = tmp_path / "r"
+    first = train("rhythm", paired, out, epochs=1, progress=QUIET)
+    assert first["training"]["epochs"] == 1
+    resumed = train("rhythm", paired, out, epochs=2, resume=True, progress=QUIET)
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2]
+    assert resumed["sha256"] == straight["sha256"]  # bit-identical to the uninterrupted run
+
+
+def _rewrite(path, header_change=None, payload_cut=0, flip=None):
+    blob = bytearray(path.read_bytes())
+    (n,) = struct.unpack("<Q", blob[8:16])
+    header = json.loads(blob[16 : 16 + n])
+    payload = blob[16 + n :]
+    if header_change:
+        header.update(header_change)
+    if flip is not None:
+        payload[flip] ^= 0xFF
+    if payload_cut:
+        payload = payload[:-payload_cut]
+    head = json.dumps(header).encode()
+    return bytes(blob[:8]) + struct.pack("<Q", len(head)) + head + bytes(payload)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"header_change": {"format": 99}}, "format version 99"),
+        ({"payload_cut": 100}, "truncated"),
+        ({"flip": 500}, "corrupted"),
+    ],
+)
+def test_bad_model_files_fail_at_load(rhythm_run, tmp_path, change, message):
+    out, summary = rhythm_run
+    bad = tmp_path / "bad.dgm"
+    bad.write_bytes(_rewrite(out / summary["path"], **change))
+    with pytest.raises(ModelFileError, match=message) as exc:
+        load_model(bad)
+    assert exc.value.code == "model_file_invalid"
+
+
+def test_not_a_model_and_wrong_hash(rhythm_run, tmp_path):
+    out, summary = rhythm_run
+    junk = tmp_path / "junk.dgm"
+    junk.write_bytes(b"hello")
+    with pytest.raises(ModelFileError, match="bad magic"):
+        load_model(junk)
+    with pytest.raises(ModelFileError, match="expected"):
+        load_model(out / summary["path"], sha256="0" * 64)
+    with pytest.raises(ModelFileError, match="cannot be read"):
+        load_model(tmp_path / "missing.dgm")
+
+
+def _manifest(paired, tmp_path, edit):
+    data = json.loads(paired.read_text())
+    edit(data)
+    path = paired.parent / f"m-{tmp_path.name}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_empty_manifest_is_refused(paired, tmp_path):
+    path = _manifest(paired, tmp_path, lambda d: d.update(music=[], dance=[], pairs=[]))
+    for kind in ("style", "rhythm"):
+        with pytest.raises(TrainingDataError) as exc:
+            train(kind, path, tmp_path / kind, epochs=1, progress=QUIET)
+        assert exc.value.code == "training_data_empty"
+
+
+def test_single_class_manifest_is_refused(paired, tmp_path):
+    def one_style(d):
+        for e in d["music"] + d["dance"]:
+            e["style"] = {"tempo": "slow", "quality": "pop"}
+            e["signatures"] = ["01010101"] * len(e["bars"])
+
+    path = _manifest(paired, tmp_path, one_style)
+    for kind in ("style", "rhythm"):
+        with pytest.raises(TrainingDataError, match="single|every training bar") as exc:
+            train(kind, path, tmp_path / kind, epochs=1, progress=QUIET)
+        assert exc.value.code == "training_data_single_class"
+
+
+def test_train_cli_reports_errors_with_their_code(paired, tmp_path, capsys):
+    from dancegraph.cli import main
+
+    path = _manifest(paired, tmp_path, lambda d: d.update(music=[], dance=[], pairs=[]))
+    rc = main(["train", "rhythm", "--manifest", str(path), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "training_data_empty" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def demo_store(tmp_path_factory):
+    from dancegraph.motion.dataset import import_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.store import ObjectStore
+
+    root = tmp_path_factory.mktemp("demo")
+    store = ObjectStore(root / "store")
+    lib = write_demo_library(root / "lib")
+    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
+    return store
+
+
+def test_graph_built_with_learned_models_reports_and_uses_them(
+    demo_store, style_run, rhythm_run, capsys
+):
+    from dancegraph.cli import main
+    from dancegraph.graph import artifact
+    from dancegraph.graph.search import music_style
+    from services.graphstore.client import LocalGraphStore
+
+    style_path = style_run[0] / style_run[1]["path"]
+    rhythm_path = rhythm_run[0] / rhythm_run[1]["path"]
+    args = ["dataset", "build", "demo", "--store", str(demo_store.root), "--json"]
+    assert main([*args, "--embedding", str(style_path), "--rhythm-model", str(rhythm_path)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["embedding"] == style_run[1]["version"]
+    g = artifact.load_current(demo_store, "demo")
+    entry = g.manifest["embedding"]
+    assert entry["style_model"]["sha256"] == style_run[1]["sha256"]
+    assert entry["rhythm_model"]["version"] == rhythm_run[1]["version"]
+    # node styles are E_D's: augmentations share their source bar's
+    src = np.asarray(g.node_source)[:, 0]
+    assert np.allclose(g.style, np.asarray(g.style)[src])
+    m = load_model(style_path)
+    originals = np.flatnonzero(np.asarray(g.node_kind) == 0)
+    assert not np.allclose(g.style[originals[0]], g.style[originals[-1]])
+    # the graphstore names the learned model
+    info = LocalGraphStore(demo_store).graph_info("demo")
+    assert info["embedding"] == m.version
+    assert info["embedding_details"]["rhythm_model"]["version"] == rhythm_run[1]["version"]
+    assert "bridge" not in info["embedding_details"]
+    # search side: the music style lands in the learned space, top-3 from the rhythm model
+    rng = np.random.default_rng(0)
+    music = {
+        "bars": np.stack([np.arange(6) * 2.0, np.arange(6) * 2.0 + 2.0], axis=1),
+        "n": 6,
+        "onset": rng.random((6, 2, 200)),
+        "topk": np.zeros((6, 3), int),
+    }
+    z = music_style(music, g)
+    assert z.shape == (6, 32) and not np.allclose(z, music_style(dict(music), None))
+    assert music["topk"].shape == (6, 3) and (music["topk"][:, 0] != music["topk"][:, 1]).all()
+
+
+def test_build_refuses_a_bad_model_before_work(demo_store, tmp_path, capsys):
+    from dancegraph.cli import main
+
+    bad = tmp_path / "bad.dgm"
+    bad.write_bytes(b"DGMODEL\n" + b"\x00" * 4)
+    args = ["dataset", "build", "demo", "--store", str(demo_store.root), "--embedding", str(bad)]
+    assert main(args) == 2
+    assert "model_file_invalid" in capsys.readouterr().err
+
+
+def test_build_refuses_a_model_of_the_wrong_kind(demo_store, rhythm_run, capsys):
+    from dancegraph.cli import main
+
+    rhythm_path = rhythm_run[0] / rhythm_run[1]["path"]
+    args = ["dataset", "build", "demo", "--store", str(demo_store.root)]
+    assert main([*args, "--embedding", str(rhythm_path)]) == 2
+    assert "expected a style model" in capsys.readouterr().err
