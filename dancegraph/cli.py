@@ -21,6 +21,22 @@ def _print_json(obj) -> None:
     sys.stdout.write("\n")
 
 
+def _read_spec(path: str | None) -> dict:
+    """The constraint spec JSON object in ``path`` ({} without one); SpecError naming the file."""
+    from dancegraph.errors import SpecError
+
+    if not path:
+        return {}
+    try:
+        with open(path, encoding="utf-8") as fh:
+            spec = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise SpecError(f"cannot read the spec {path}: {exc}", field=path) from exc
+    if not isinstance(spec, dict):
+        raise SpecError(f"{path}: the spec must be a JSON object", field=path)
+    return spec
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dancegraph", description="Music in, dance out.")
     parser.add_argument("--version", action="version", version=f"dancegraph {__version__}")
@@ -340,23 +356,12 @@ def _add_synthesize(sub) -> None:
     p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
 
     def run(args) -> None:
-        from dancegraph.errors import SpecError
         from dancegraph.paths import store_dir
         from dancegraph.render import synthesize
         from dancegraph.store import ObjectStore
         from services.graphstore.client import LocalGraphStore, parse_spec
 
-        spec: dict = {}
-        if args.spec:
-            try:
-                with open(args.spec, encoding="utf-8") as fh:
-                    spec = json.load(fh)
-            except (OSError, ValueError) as exc:
-                raise SpecError(
-                    f"cannot read the spec {args.spec}: {exc}", field=args.spec
-                ) from exc
-            if not isinstance(spec, dict):
-                raise SpecError(f"{args.spec}: the spec must be a JSON object", field=args.spec)
+        spec = _read_spec(args.spec)
         if args.alternatives is not None:
             spec["alternatives"] = args.alternatives
         parsed = parse_spec(args.dataset, spec)
@@ -415,14 +420,9 @@ def _add_eval(sub) -> None:
 
         store = ObjectStore(args.store or store_dir())
         if args.result:
-            timeline_path = os.path.join(args.result, "timeline.json")
-            try:
-                with open(timeline_path, encoding="utf-8") as fh:
-                    prov = json.load(fh).get("provenance", {})
-            except (OSError, ValueError) as exc:
-                raise SpecError(
-                    f"cannot read {timeline_path}: {exc}", code="eval_bad_result", field="result"
-                ) from exc
+            from dancegraph.preview import read_timeline
+
+            prov = read_timeline(args.result).get("provenance", {})
             name = args.dataset or prov.get("dataset", {}).get("name")
             version = prov.get("graph", {}).get("version")
             graphs = LocalGraphStore(store)
@@ -437,18 +437,9 @@ def _add_eval(sub) -> None:
                 code="eval_usage",
                 field="audio",
             )
-        spec: dict = {}
-        if args.spec:
-            try:
-                with open(args.spec, encoding="utf-8") as fh:
-                    spec = json.load(fh)
-            except (OSError, ValueError) as exc:
-                raise SpecError(
-                    f"cannot read the spec {args.spec}: {exc}", field=args.spec
-                ) from exc
-        parsed = parse_spec(args.dataset, spec)
+        parsed = parse_spec(args.dataset, _read_spec(args.spec))
         graph = LocalGraphStore(store).graph(args.dataset)
-        songs = [load_song(a) for a in args.audio]  # bad audio fails before the library loads
+        songs = [load_song(a, graph=graph) for a in args.audio]  # bad audio: before the library
         lib = load_library(graph, load_dataset(store, args.dataset))
         metrics = evaluate(
             songs,

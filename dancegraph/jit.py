@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -57,15 +58,43 @@ def compile_lock() -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+_warm: set[str] = set()
+_warm_lock = threading.Lock()
+
+
+def _warm_music() -> None:
+    from dancegraph.music import beats
+
+    beats.warm_up()
+
+
+def _warm_search() -> None:
+    from dancegraph.graph import search
+
+    search.warm_up()
+
+
+_WARMERS = {"music": _warm_music, "search": _warm_search}
+
+
 def warm_up(music: bool = True, search: bool = True) -> None:
     """Compile or load the kernels a job uses — ``music``: beat decoding with librosa's kernels
-    and the BeatNet model; ``search``: the graph search — under :func:`compile_lock`."""
-    with compile_lock():
-        if music:
-            from dancegraph.music import beats
+    and the BeatNet model; ``search``: the graph search — under :func:`compile_lock`.
 
-            beats.warm_up()
-        if search:
-            from dancegraph.graph import search as graph_search
-
-            graph_search.warm_up()
+    Once per process and part: the entry points (``beats.track_beats``, ``search.search``) call
+    it first, so no process compiles into the shared cache outside the lock. Cheap afterwards.
+    """
+    parts = [p for p, on in (("music", music), ("search", search)) if on and p not in _warm]
+    if not parts:
+        return
+    with _warm_lock, compile_lock():
+        for part in parts:
+            if part in _warm:
+                continue
+            # marked first: the warm-up runs through the same guarded entry points
+            _warm.add(part)
+            try:
+                _WARMERS[part]()
+            except BaseException:
+                _warm.discard(part)
+                raise

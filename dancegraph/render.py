@@ -454,18 +454,24 @@ def synthesize(
     out_dir: str | Path,
     *,
     analysis=None,
+    sr: int | None = None,
     exporter=None,
 ) -> dict:
     """Song → dance files: analysis (unless given) → graph search → :func:`render`.
 
-    ``audio``: a path or ``(N,)`` samples (then pass ``analysis``). Returns render's dict plus
-    ``analysis`` (the summary) and ``search`` (``SearchResult.to_dict()``).
+    ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). A graph
+    built with learned models gets their music terms from the audio (``add_music_terms``; for
+    samples only with ``sr``). Returns render's dict plus ``analysis`` (the summary) and
+    ``search`` (``SearchResult.to_dict()``).
     """
+    from dancegraph.embed.learned import add_music_terms
     from dancegraph.graph.search import search
     from dancegraph.music.analysis import analyze
 
     if analysis is None:
         analysis = analyze(audio)
+    if isinstance(audio, str | Path) or sr is not None:
+        analysis = add_music_terms(analysis, graph, audio if sr is None else (audio, sr))
     found = search(graph, analysis, spec)
     found_dict = found.to_dict()
     found_dict.setdefault("graph", {"name": graph.name, "version": graph.version})

@@ -8,23 +8,31 @@ content-addressed into the object store (``models/<kind>-<hash12>.dgm``) and the
 ``embedding`` entry names them: ``version`` (the style model's, or ``descriptor-v1``),
 ``style_model`` / ``rhythm_model`` (kind, version, sha256, store key, classes, training).
 
-Search: the music analysis carries per-bar ``bar_onset_rms`` but not the audio, so
-- the rhythm model's top-3 for each music bar comes from E_MR + E_RS on ``bar_onset_rms`` and the
-  bar's descriptor style;
-- the music style of a graph with a learned style is the *descriptor bridge*: a ridge map from
-  the descriptor space (``descriptor-v1``, shared by both modalities) into the learned space,
-  fitted at build on the graph's original bars (descriptor style → E_D style) and stored in the
-  manifest. E_M itself (``LoadedModel.music_style``) needs the song's log-mel windows, which the
-  analysis does not carry yet.
+Search (``graph.search.music_inputs``): where the song's audio is at hand (``render.synthesize``,
+the worker's job pipeline), ``add_music_terms`` puts the graph's learned music inputs into the
+``MusicAnalysis``, keyed by each model's content hash: ``learned_style`` = E_M of the 8-s log-mel
+window from each bar's start (the same window E_D sees for a dance bar), ``learned_topk`` = the
+rhythm model's top-3 (E_MR + E_RS on ``bar_onset_rms`` and the bar's descriptor style). The
+search uses them when the hashes match the graph's models. Otherwise (an analysis made without
+the audio, or for another model) the music style is the *descriptor bridge*: a ridge map from the
+descriptor space (``descriptor-v1``, shared by both modalities) into the learned space, fitted at
+build on the graph's original bars (descriptor style → E_D style) and stored in the manifest; the
+rhythm top-3 is then computed at search from ``bar_onset_rms``. The search reports which source
+it used (``report["music_style"]``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dancegraph.embed.model import LoadedModel, load_model
+from dancegraph.embed import descriptor
+from dancegraph.errors import SpecError
+
+if TYPE_CHECKING:  # the model module loads torch: imported where a model is loaded
+    from dancegraph.embed.model import LoadedModel
 
 BRIDGE_RIDGE = 1e-2
 
@@ -101,7 +109,12 @@ def store_models(store, *models: LoadedModel | None) -> None:
             store.put_file(model_key(m), m.path)
 
 
-def music_style(entry: dict, music_desc: np.ndarray) -> np.ndarray:
+def store_root(graph) -> Path | None:
+    """The object store a graph artifact was loaded from (where its model files are)."""
+    return graph.path.parents[2] if graph.path is not None else None
+
+
+def bridged_style(entry: dict, music_desc: np.ndarray) -> np.ndarray:
     """Music style ``(T, 32)`` in a graph's space: the descriptor style itself, or bridged into
     the learned space when the graph's ``embedding`` entry has a style model."""
     if "bridge" not in entry:
@@ -111,18 +124,69 @@ def music_style(entry: dict, music_desc: np.ndarray) -> np.ndarray:
 
 
 def music_topk(
-    entry: dict, store_root: Path | None, onset_rms: np.ndarray, music_desc: np.ndarray, k: int = 3
-) -> np.ndarray | None:
-    """``(T, k)`` top signatures of the music bars by the graph's rhythm model; None without one
-    (or without the bars' onset/RMS curves)."""
-    rec = entry.get("rhythm_model")
-    if (
-        rec is None
-        or store_root is None
-        or onset_rms.ndim != 3
-        or len(onset_rms) != len(music_desc)
-    ):
-        return None
-    model = load_model(Path(store_root) / rec["key"], sha256=rec["sha256"])
-    scores = model.signature_scores("music", onset_rms, music_desc)
+    record: dict, store_root: Path, bars: np.ndarray, onset_rms: np.ndarray, k: int = 3
+) -> np.ndarray:
+    """``(T, k)`` top signatures of the music bars ``bars (T, 2)`` s by the rhythm model of a
+    manifest ``record``, from their ``bar_onset_rms (T, 2, 200)`` and descriptor style."""
+    from dancegraph.embed.model import load_model
+
+    bars = np.asarray(bars, dtype=float).reshape(-1, 2)
+    desc = descriptor.embed_music(bars[:, 1] - bars[:, 0], onset_rms)
+    model = load_model(Path(store_root) / record["key"], sha256=record["sha256"])
+    scores = model.signature_scores("music", onset_rms, desc)
     return np.argsort(-scores, axis=1, kind="stable")[:, :k]
+
+
+def add_music_terms(analysis, graph, audio):
+    """``analysis`` (a ``MusicAnalysis``) with ``graph``'s learned music inputs added, keyed by
+    model sha256: ``learned_style`` ``(B, 32)`` E_M of the 8-s window from each bar's start, and
+    ``learned_topk`` ``(B, 3)`` the rhythm model's top-3. A copy; terms already there are kept,
+    and a graph without learned models adds nothing. ``audio``: the song's file (decoded at
+    16 kHz) or ``(y, sr)`` mono samples; read only for a style model."""
+    import dataclasses
+
+    entry = graph.manifest.get("embedding") or {}
+    root = store_root(graph)
+    style_rec, rhythm_rec = entry.get("style_model"), entry.get("rhythm_model")
+    styles, topks = dict(analysis.learned_style), dict(analysis.learned_topk)
+    bars = np.asarray(analysis.bars, dtype=float).reshape(-1, 2)
+    if root is None or len(bars) == 0 or (style_rec is None and rhythm_rec is None):
+        return analysis
+    if style_rec is not None and style_rec["sha256"] not in styles:
+        from dancegraph.embed.model import load_model
+        from dancegraph.music.decode import load_audio
+        from dancegraph.music.features import LOGMEL_SR, music_logmel
+
+        model = load_model(root / style_rec["key"], sha256=style_rec["sha256"])
+        y, sr = audio if isinstance(audio, tuple) else load_audio(audio, sr=LOGMEL_SR)
+        styles[model.sha256] = model.music_style(music_logmel(y, sr), bars[:, 0])
+    onset = np.asarray(analysis.bar_onset_rms, dtype=float)
+    if rhythm_rec is not None and rhythm_rec["sha256"] not in topks and len(onset) == len(bars):
+        topks[rhythm_rec["sha256"]] = music_topk(rhythm_rec, root, bars, onset)
+    return dataclasses.replace(analysis, learned_style=styles, learned_topk=topks)
+
+
+def analysis_terms(
+    entry: dict, analysis, n_bars: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The E_M style ``(T, 32)`` and rhythm top-3 ``(T, 3)`` that ``analysis`` carries for the
+    models of a graph's ``embedding`` entry; None where it carries none for that model (or the
+    graph has none). A carried array of the wrong shape raises ``analysis_invalid``."""
+    out: list[np.ndarray | None] = []
+    for kind, attr, width in (
+        ("style_model", "learned_style", 32),
+        ("rhythm_model", "learned_topk", 3),
+    ):
+        rec = entry.get(kind)
+        arr = (getattr(analysis, attr, None) or {}).get(rec["sha256"]) if rec else None
+        if arr is not None:
+            arr = np.asarray(arr)
+            if arr.shape[0] != n_bars or arr.shape[1:] != (width,):
+                raise SpecError(
+                    f"analysis.{attr}[{rec['sha256'][:12]}] has shape {arr.shape}, expected "
+                    f"({n_bars}, {width})",
+                    code="analysis_invalid",
+                    field=f"analysis.{attr}",
+                )
+        out.append(arr)
+    return out[0], out[1]

@@ -434,12 +434,16 @@ def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[s
 # entry points
 
 
-def load_song(path: str | Path, analysis=None) -> Song:
-    """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats."""
+def load_song(path: str | Path, analysis=None, graph: MotionGraph | None = None) -> Song:
+    """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats; with
+    ``graph``, add its learned models' music terms (``embed.learned.add_music_terms``)."""
+    from dancegraph.embed.learned import add_music_terms
     from dancegraph.music.analysis import analyze
     from dancegraph.music.decode import load_audio
 
     analysis = analysis if analysis is not None else analyze(path)
+    if graph is not None:
+        analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)
     return Song(
         name=Path(path).name,
@@ -514,18 +518,21 @@ def evaluate(
 def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | None = None) -> dict:
     """Score one existing synthesize/job result folder (``timeline.json`` + ``alternatives/*.bvh``)
     against ``lib`` (the graph it was danced from); writes ``metrics.json`` and ``report.html``
-    into the folder. Music beats for the Beat Align Scores come from ``audio`` when given, else
-    from the timeline's bars (our tracker's beats, labelled so in the metrics)."""
+    into the folder. Music beats for the Beat Align Scores come from ``audio`` (default: the song
+    recorded in the timeline, when it is found beside the result), else from the timeline's bars
+    (our tracker's beats, labelled so in the metrics)."""
+    from dancegraph.errors import NotFoundError
     from dancegraph.motion.bvh import read_bvh
     from dancegraph.music.analysis import MusicAnalysis
+    from dancegraph.preview import find_audio, read_timeline
 
     folder = Path(result_dir)
-    try:
-        timeline = json.loads((folder / "timeline.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise EvalError(
-            f"{folder}: no readable timeline.json ({exc})", code="eval_bad_result", field="result"
-        ) from None
+    timeline = read_timeline(folder)
+    if audio is None:
+        try:
+            audio = find_audio(folder, timeline)
+        except NotFoundError:
+            audio = None
     spec = Spec.model_validate(timeline.get("provenance", {}).get("spec", {}))
     bar_rows = timeline.get("bars", [])
     bars = np.array([[b["start_s"], b["end_s"]] for b in bar_rows], dtype=float).reshape(-1, 2)

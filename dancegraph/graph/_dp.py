@@ -20,13 +20,16 @@ reference counting (measured 2–3× slower on the 750k-edge benchmark graph).
 
 from __future__ import annotations
 
-from collections import namedtuple
-
 import os
+import threading
+from collections import namedtuple
 
 import numba
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 # numba's "workqueue" threads survive fork (a worker pool forks after the warm-up; GNU OpenMP's
 # do not: the child is terminated), but must not run two parallel kernels at once: callers of
@@ -34,11 +37,37 @@ from numba import njit, prange
 # thread count (default: every core).
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
+FORWARD_LOCK = threading.Lock()
 
 INF = np.float32(np.inf)
 # steps with at least this many states (nodes) spread over threads; below, one thread is faster
-PARALLEL_MIN = 16384
+PARALLEL_MIN = 4096
 CHUNKS = 64  # parallel loops run in this many chunks: balances uneven chunks over threads
+PREFETCH_AHEAD = 4  # states ahead whose transitions' feature rows are fetched early
+
+
+@intrinsic
+def _prefetch(typingctx, arr, row, col):
+    """Hint the CPU to fetch the cache line of ``arr[row, col]`` (2-D array; no effect on
+    results). LLVM's prefetch: numba has no call for it."""
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = [
+            context.cast(builder, v, t, types.intp) for v, t in zip(args[1:], signature.args[1:])
+        ]
+        ptr = builder.bitcast(
+            cgutils.get_item_pointer(context, builder, aryty, ary, idx), cgutils.voidptr_t
+        )
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [cgutils.voidptr_t, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [ptr, i32(0), i32(3), i32(1)])  # read, keep in all levels, data
+        return context.get_dummy_value()
+
+    return types.void(arr, row, col), codegen
+
 
 Graph = namedtuple(
     "Graph",
@@ -254,16 +283,11 @@ def _depth(ch, c):
 
 
 @njit(cache=True)
-def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost):
+def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_node, memo_cost):
     """Ready the states ``act[0][lo:hi]`` of chain step c-1 to relax into step c: add their
     charges, walk their copies' poses, find the node the next chain bar follows. Writes
     ``act[1..3][a]`` (cost so far, source node, pose), or the final cost ``act[4][s]`` after the
-    last step. States are independent: chunks of them run on different threads.
-
-    ``anc (2, N·slots, W) int32``: each state's nodes at its last W chain steps (step j in column
-    j mod W); the rows of step c-2's states are read from ``anc[(c-1) % 2]``, those of step c-1's
-    written to ``anc[c % 2]``: one read per state instead of a chain of back pointers (each a
-    cache miss on large graphs)."""
+    last step. States are independent: chunks of them run on different threads."""
     act_state, act_base, act_src, act_pose, final = act
     n_chain = ch.var.shape[0]
     prev = c - 1
@@ -280,28 +304,41 @@ def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, m
     g0, g1 = ch.gap_ptr[c], ch.gap_ptr[c + 1]
     h0, h1 = ch.charge_ptr[c], ch.charge_ptr[c + 1]
     depth = _depth(ch, c)
-    win = anc.shape[2]
-    anc_in, anc_out = anc[(c - 1) % 2], anc[c % 2]
-    hist = np.zeros(n_chain, np.int64)
+    # first each state's history (its nodes at steps depth..prev) and its charges' node pairs,
+    # so that the feature rows of a later state's pairs can be fetched ahead (random reads)
+    hist = np.empty((hi - lo, prev - depth + 1), np.int64)
+    pair = np.empty((hi - lo, h1 - h0, 2), np.int64)
+    for a in range(lo, hi):
+        i = act_state[a]
+        row = hist[a - lo]
+        for j in range(prev, depth - 1, -1):
+            row[j - depth] = i // slots
+            i = back[j, i]
+        for j in range(h0, h1):
+            na = row[charge_a[j] - depth]
+            nb = row[charge_b[j] - depth]
+            pair[a - lo, j - h0, 0] = mirror_of[na] if charge_pa[j] == 1 else na
+            pair[a - lo, j - h0, 1] = mirror_of[nb] if charge_pb[j] == 1 else nb
+    width = out_feat.shape[1]
     for a in range(lo, hi):
         s = act_state[a]
         q = s // slots
         k = s - q * slots
         base = np.float64(cost[q, k])
         x, z, yaw = pose[q, k, 0], pose[q, k, 1], pose[q, k, 2]
-        row = anc_out[s]
-        if prev > 0:
-            row[:] = anc_in[back[prev, s]]
-        row[prev % win] = q
-        for j in range(depth, prev + 1):
-            hist[j] = row[j % win]
+        ahead = a + PREFETCH_AHEAD
+        if ahead < hi:
+            s2 = act_state[ahead]
+            for j in range(h0, h1):
+                na = pair[ahead - lo, j - h0, 0]
+                nb = pair[ahead - lo, j - h0, 1]
+                if not (memo and memo_node[s2, j, 0] == na and memo_node[s2, j, 1] == nb):
+                    for col in range(0, width, 16):
+                        _prefetch(out_feat, na, col)
+                        _prefetch(in_feat, nb, col)
         for j in range(h0, h1):
-            na = hist[charge_a[j]]
-            nb = hist[charge_b[j]]
-            if charge_pa[j] == 1:
-                na = mirror_of[na]
-            if charge_pb[j] == 1:
-                nb = mirror_of[nb]
+            na = pair[a - lo, j - h0, 0]
+            nb = pair[a - lo, j - h0, 1]
             if memo and memo_node[s, j, 0] == na and memo_node[s, j, 1] == nb:
                 t = memo_cost[s, j]
             else:
@@ -320,7 +357,7 @@ def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, m
         src = q  # the node of the bar before the next chain bar
         cy, sy = (np.cos(yaw), np.sin(yaw)) if track and g1 > g0 else (1.0, 0.0)
         for j in range(g0 if track else max(g0, g1 - 1), g1):
-            src = hist[gap_step[j]]
+            src = hist[a - lo, gap_step[j] - depth]
             if gap_par[j] == 1:
                 src = mirror_of[src]
             if track:
@@ -363,12 +400,12 @@ def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge,
 
 
 @njit(cache=True, parallel=True)
-def _prepare_par(n, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost):
+def _prepare_par(n, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_node, memo_cost):
     """:func:`_prepare` over ``n`` states in chunks on all threads."""
     chunks = min(n, CHUNKS)
     for i in prange(chunks):
         lo, hi = n * i // chunks, n * (i + 1) // chunks
-        _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost)
+        _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_node, memo_cost)
 
 
 @njit(cache=True, parallel=True)
@@ -378,7 +415,9 @@ def _pull_par(unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cos
     chunks = min(n, CHUNKS)
     for i in prange(chunks):
         lo, hi = n * i // chunks, n * (i + 1) // chunks
-        _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot)
+        _pull(
+            lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot
+        )
 
 
 @njit(cache=True)
@@ -426,10 +465,6 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
     # reads stay in cache on large graphs)
     src_best = np.empty(n_nodes, np.float32)
     src_state = np.empty(n_nodes, np.int32)
-    win = 1
-    for c in range(1, n_chain + 1):
-        win = max(win, c - _depth(ch, c))
-    anc = np.empty((2, n_states, win), np.int32)
 
     # step 0: every allowed node, placed at the start pose
     cur = back[0].reshape((n_nodes, slots))
@@ -457,11 +492,11 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 n_act += 1
         if n_act >= PARALLEL_MIN:
             _prepare_par(
-                n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost
+                n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_node, memo_cost
             )
         else:
             _prepare(
-                0, n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, anc, memo_node, memo_cost
+                0, n_act, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_node, memo_cost
             )
         if c == n_chain:
             break

@@ -242,13 +242,21 @@ def _match_nodes(
 # the search
 
 
-def music_style(music: dict, graph: MotionGraph | None = None) -> np.ndarray:
-    """Style of each music bar ``(T, 32)`` in ``graph``'s style space.
+def music_style(music: dict, graph: MotionGraph | None = None, analysis=None) -> np.ndarray:
+    """Style of each music bar ``(T, 32)`` in ``graph``'s style space (see ``music_inputs``)."""
+    return music_inputs(music, graph, analysis)[0]
 
-    The descriptor style (``descriptor-v1``), bridged into the learned space when the graph was
-    built with a learned style model. With a learned rhythm model in the graph, the bars' top-3
-    signatures ``music["topk"]`` are replaced by that model's (``embed.learned``), so the rhythm
-    term and the node signatures come from the same model.
+
+def music_inputs(music: dict, graph: MotionGraph | None, analysis=None) -> tuple[np.ndarray, dict]:
+    """The music side of the data term for ``graph``: ``(zm (T, 32), music')``, ``music'`` a copy
+    of ``music`` whose ``topk (T, 3)`` are the signatures the rhythm term uses and whose
+    ``style_source`` says where both came from.
+
+    Style: ``descriptor`` (``descriptor-v1`` graphs); ``e_m``, the graph's style model's E_M
+    style that ``analysis.learned_style`` carries under the model's hash; else ``bridge``, the
+    descriptor style mapped into the learned space (``embed.learned``). Signatures: the
+    analysis's own (``analytic``), or with a rhythm model in the graph its top-3
+    (``rhythm_model``: ``analysis.learned_topk`` under its hash, else computed here).
     """
     dur = music["bars"][:, 1] - music["bars"][:, 0]
     onset = music["onset"]
@@ -261,15 +269,34 @@ def music_style(music: dict, graph: MotionGraph | None = None) -> np.ndarray:
             )
         )
     entry = (graph.manifest.get("embedding") or {}) if graph is not None else {}
+    source = {"style": "descriptor", "signatures": "analytic"}
+    out = {**music, "style_source": source}
     if "style_model" not in entry and "rhythm_model" not in entry:
-        return z
-    from dancegraph.embed import learned  # torch: only for graphs with learned models
+        return z, out
+    from dancegraph.embed import learned  # loads torch only when a model is used
 
-    root = graph.path.parents[2] if graph.path is not None else None  # the object store
-    topk = learned.music_topk(entry, root, onset, z)
-    if topk is not None:
-        music["topk"] = topk
-    return learned.music_style(entry, z)
+    style, topk = learned.analysis_terms(entry, analysis, music["n"])
+    if "style_model" in entry:
+        source["style_model"] = entry["style_model"]["version"]
+        source["style"] = "e_m" if style is not None else "bridge"
+        if style is None:
+            source["note"] = (
+                "the analysis carries no E_M style for this model (made without the audio): "
+                "descriptor style bridged into the learned space"
+            )
+            style = learned.bridged_style(entry, z)
+    else:
+        style = z
+    if "rhythm_model" in entry:
+        if topk is None and onset.ndim == 3 and onset.shape[0] == music["n"]:
+            root = learned.store_root(graph)
+            if root is not None:
+                topk = learned.music_topk(entry["rhythm_model"], root, music["bars"], onset)
+        if topk is not None:
+            out["topk"] = np.asarray(topk, dtype=int)
+            source["signatures"] = "rhythm_model"
+            source["rhythm_model"] = entry["rhythm_model"]["version"]
+    return style, out
 
 
 def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: Spec) -> np.ndarray:
@@ -369,7 +396,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
-    zm = music_style(music, graph)
+    zm, music = music_inputs(music, graph, analysis)
     sig_cost = COMMON_DISTANCES[music["topk"]].min(axis=1)  # (T, 13)
     data = data_costs(graph, zm, sig_cost, spec)
     # restrictions: a mask for all bars, and masks of single bars (None: everything allowed)
@@ -705,6 +732,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     ]
     report["variables"] = int(n_vars)
     report["bars"] = int(n_bars)
+    report["music_style"] = music["style_source"]
     return SearchResult(alternatives=alternatives, report=report)
 
 
@@ -897,17 +925,19 @@ def _ptr(owner: np.ndarray, n_chain: int) -> np.ndarray:
 
 def _run(ctx: dict, unary: np.ndarray, spec: Spec) -> np.ndarray:
     """One forward pass and backtrack; returns the node of every song bar ``(T,)``."""
-    back, final, dead = _dp.forward(
-        np.ascontiguousarray(unary, dtype=np.float32),
-        ctx["chain"],
-        ctx["dp"],
-        ctx["track"],
-        float(spec.weights.transition),
-        ctx["dense"],
-        ctx["slots"],
-        DENSE_LIMIT,
-        *ctx["memo"],
-    )
+    unary = np.ascontiguousarray(unary, dtype=np.float32)
+    with _dp.FORWARD_LOCK:
+        back, final, dead = _dp.forward(
+            unary,
+            ctx["chain"],
+            ctx["dp"],
+            ctx["track"],
+            float(spec.weights.transition),
+            ctx["dense"],
+            ctx["slots"],
+            DENSE_LIMIT,
+            *ctx["memo"],
+        )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(
             f"no path reaches bar {int(ctx['chain'].bar[dead])}",

@@ -50,6 +50,11 @@ class MusicAnalysis:
     (end exclusive, occurrence from 0); ``tags`` per bar ``{label, occurrence, index,
     meter_id}``; ``signature_scores`` (B, 13) and ``signature_topk`` (B, 3) index
     ``COMMON_SIGNATURES``; ``bar_onset_rms`` (B, 2, 200).
+
+    Optional, per learned model (keyed by the model file's sha256, added where the audio is at
+    hand by ``embed.learned.add_music_terms``, absent from ``to_dict`` when empty so the cached
+    analysis of a song stays what ``analyze`` wrote): ``learned_style`` (B, 32) the style
+    model's E_M style per bar, ``learned_topk`` (B, 3) the rhythm model's top-3 signatures.
     """
 
     duration_s: float
@@ -68,6 +73,8 @@ class MusicAnalysis:
     bar_onset_rms: np.ndarray
     method: str
     warnings: list[str] = field(default_factory=list)
+    learned_style: dict[str, np.ndarray] = field(default_factory=dict)
+    learned_topk: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_bars(self) -> int:
@@ -84,7 +91,7 @@ class MusicAnalysis:
         def r(a: np.ndarray, nd: int = 4) -> list:
             return np.round(np.asarray(a, dtype=float), nd).tolist()
 
-        return {
+        out = {
             "duration_s": round(float(self.duration_s), 4),
             "tempo_bpm": round(float(self.tempo_bpm), 3),
             "tempo_confidence": round(float(self.tempo_confidence), 4),
@@ -102,6 +109,13 @@ class MusicAnalysis:
             "method": self.method,
             "warnings": list(self.warnings),
         }
+        if self.learned_style:
+            out["learned_style"] = {k: r(v) for k, v in self.learned_style.items()}
+        if self.learned_topk:
+            out["learned_topk"] = {
+                k: np.asarray(v, dtype=int).tolist() for k, v in self.learned_topk.items()
+            }
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> MusicAnalysis:
@@ -127,6 +141,14 @@ class MusicAnalysis:
             bar_onset_rms=a("bar_onset_rms", (2, 200)),
             method=str(d.get("method", "")),
             warnings=list(d.get("warnings", [])),
+            learned_style={
+                str(k): np.asarray(v, dtype=np.float32).reshape(-1, 32)
+                for k, v in (d.get("learned_style") or {}).items()
+            },
+            learned_topk={
+                str(k): np.asarray(v, dtype=int).reshape(-1, 3)
+                for k, v in (d.get("learned_topk") or {}).items()
+            },
         )
 
     def summary(self) -> dict:

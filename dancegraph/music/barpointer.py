@@ -20,12 +20,11 @@ generated set 0.88 -> 0.85) and keeps one meter per song.
 Memory: the back-pointers are kept only for the first state of each beat (all others have a single
 predecessor), (T, meters x beats x tempi) int16 — 33 MB for a 15-minute song at 50 fps.
 The Viterbi kernel is compiled by numba and cached on disk (``NUMBA_CACHE_DIR``, by default
-``$DANCEGRAPH_HOME/numba_cache``); call :func:`warm_up` when a worker starts.
+``$DANCEGRAPH_HOME/numba_cache``; see :mod:`dancegraph.jit`).
 """
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass
 
@@ -207,12 +206,6 @@ _KERNEL = None
 _LOCK = threading.Lock()
 
 
-def _numba_cache_dir() -> str:
-    from dancegraph.paths import home_dir
-
-    return os.environ.get("NUMBA_CACHE_DIR") or str(home_dir() / "numba_cache")
-
-
 def _kernel():
     """The numba-compiled Viterbi kernel, compiled (or loaded from the disk cache) once."""
     global _KERNEL
@@ -220,11 +213,9 @@ def _kernel():
         if _KERNEL is None:
             import numba
 
-            if not numba.config.CACHE_DIR:
-                # decorating after this makes numba cache under the project's folder; the
-                # variable also reaches librosa's kernels if librosa is imported later
-                numba.config.CACHE_DIR = _numba_cache_dir()
-                os.environ.setdefault("NUMBA_CACHE_DIR", numba.config.CACHE_DIR)
+            from dancegraph import jit
+
+            jit.configure_cache()  # decorated after this, the kernel caches in the project's folder
             _KERNEL = numba.njit(cache=True, nogil=True)(_viterbi_py)
         return _KERNEL
 

@@ -390,6 +390,9 @@ def track_beats(
             ``audio_too_long`` over 20 minutes (as :func:`~dancegraph.music.decode.load_audio`).
         ModelFileError: ``model_missing`` with ``method='beatnet'`` and no weights installed.
     """
+    from dancegraph import jit
+
+    jit.warm_up(search=False)  # compiles into the shared kernel cache only under its lock
     y = np.asarray(y, dtype=np.float32)
     if y.ndim != 1:
         raise ValueError(f"track_beats needs mono audio (N,), got shape {y.shape}")

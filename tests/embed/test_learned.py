@@ -189,7 +189,7 @@ def test_graph_built_with_learned_models_reports_and_uses_them(
 ):
     from dancegraph.cli import main
     from dancegraph.graph import artifact
-    from dancegraph.graph.search import music_style
+    from dancegraph.graph.search import music_inputs, music_style
     from services.graphstore.client import LocalGraphStore
 
     style_path = style_run[0] / style_run[1]["path"]
@@ -223,7 +223,11 @@ def test_graph_built_with_learned_models_reports_and_uses_them(
     }
     z = music_style(music, g)
     assert z.shape == (6, 32) and not np.allclose(z, music_style(dict(music), None))
-    assert music["topk"].shape == (6, 3) and (music["topk"][:, 0] != music["topk"][:, 1]).all()
+    z2, used = music_inputs(music, g)
+    assert np.allclose(z, z2) and (music["topk"] == 0).all()  # the input is not changed
+    assert used["topk"].shape == (6, 3) and (used["topk"][:, 0] != used["topk"][:, 1]).all()
+    assert used["style_source"]["style"] == "bridge"
+    assert used["style_source"]["signatures"] == "rhythm_model"
 
 
 def test_build_refuses_a_bad_model_before_work(demo_store, tmp_path, capsys):
@@ -243,3 +247,98 @@ def test_build_refuses_a_model_of_the_wrong_kind(demo_store, rhythm_run, capsys)
     args = ["dataset", "build", "demo", "--store", str(demo_store.root)]
     assert main([*args, "--embedding", str(rhythm_path)]) == 2
     assert "expected a style model" in capsys.readouterr().err
+
+
+# --- E_M at search time: the music terms the audio gives, carried by the analysis ------------
+
+
+@pytest.fixture(scope="module")
+def learned_graph(demo_store, style_run, rhythm_run):
+    from dancegraph.graph import artifact
+    from dancegraph.graph.build import build_dataset_graph
+
+    build_dataset_graph(
+        demo_store,
+        "demo",
+        embedding=str(style_run[0] / style_run[1]["path"]),
+        rhythm_model=str(rhythm_run[0] / rhythm_run[1]["path"]),
+    )
+    return artifact.load_current(demo_store, "demo")
+
+
+@pytest.fixture(scope="module")
+def song(paired):
+    """A generated song of the paired set (16 s) and its analysis."""
+    from dancegraph.music.analysis import analyze
+
+    path = paired.parent / json.loads(paired.read_text())["music"][0]["audio"]
+    return path, analyze(path)
+
+
+def test_search_uses_the_e_m_styles_the_analysis_carries(learned_graph, song, demo_store):
+    import dataclasses
+
+    from dancegraph.embed.learned import add_music_terms
+    from dancegraph.errors import SpecError
+    from dancegraph.graph.search import _music_arrays, music_style
+    from services.graphstore.client import LocalGraphStore
+
+    path, analysis = song
+    g = learned_graph
+    sha = g.manifest["embedding"]["style_model"]["sha256"]
+    full = add_music_terms(analysis, g, path)
+    assert not analysis.learned_style  # a copy: the song's own analysis is not changed
+    assert full.learned_style[sha].shape == (analysis.n_bars, 32)
+    rsha = g.manifest["embedding"]["rhythm_model"]["sha256"]
+    assert full.learned_topk[rsha].shape == (analysis.n_bars, 3)
+    z_e = music_style(_music_arrays(full), g, full)
+    z_b = music_style(_music_arrays(analysis), g, analysis)
+    assert np.allclose(z_e, full.learned_style[sha]) and not np.allclose(z_e, z_b, atol=1e-3)
+
+    # through the graph store, as JSON (the HTTP path carries the same dict)
+    store = LocalGraphStore(demo_store)
+    spec = {"alternatives": 1}
+    with_e_m = store.search("demo", json.loads(json.dumps(full.to_dict())), spec)
+    bridged = store.search("demo", analysis.to_dict(), spec)
+    src = with_e_m["constraints"]["music_style"]
+    assert src["style"] == "e_m" and src["style_model"] == g.manifest["embedding"]["version"]
+    assert src["signatures"] == "rhythm_model"
+    assert bridged["constraints"]["music_style"]["style"] == "bridge"
+    assert "no E_M style" in bridged["constraints"]["music_style"]["note"]
+    style_cost = [
+        [b["style"] for b in r["alternatives"][0]["per_bar"]] for r in (with_e_m, bridged)
+    ]
+    assert style_cost[0] != style_cost[1]
+
+    # styles of another model are not used; a wrong shape is refused with its code
+    other = dataclasses.replace(analysis, learned_style={"0" * 64: full.learned_style[sha]})
+    assert store.search("demo", other.to_dict(), spec)["constraints"]["music_style"]["style"] == (
+        "bridge"
+    )
+    bad = dataclasses.replace(analysis, learned_style={sha: full.learned_style[sha][:-1]})
+    with pytest.raises(SpecError) as exc:
+        store.search("demo", bad.to_dict(), spec)
+    assert exc.value.code == "analysis_invalid"
+    # the analysis without learned terms serialises as before (the cache by audio hash holds)
+    assert "learned_style" not in analysis.to_dict()
+
+
+def test_synthesize_and_the_job_path_compute_the_learned_terms(
+    learned_graph, song, demo_store, tmp_path
+):
+    from dancegraph.render import synthesize
+    from dancegraph.spec import Spec
+    from services.worker.pipeline import with_learned_terms
+
+    path, analysis = song
+    sha = learned_graph.manifest["embedding"]["style_model"]["sha256"]
+    spec = Spec.model_validate({"dataset": "demo", "alternatives": 1})
+    done = synthesize(path, learned_graph, spec, tmp_path / "out", analysis=analysis)
+    assert done["search"]["constraints"]["music_style"]["style"] == "e_m"
+
+    demo_store.put_file("uploads/song.wav", path)
+    data = analysis.to_dict()
+    job = with_learned_terms(demo_store, "uploads/song.wav", data, "demo")
+    assert np.asarray(job["learned_style"][sha]).shape == (analysis.n_bars, 32)
+    assert "learned_style" not in data
+    assert with_learned_terms(demo_store, "uploads/song.wav", data, "nope") is data

@@ -9,6 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from dancegraph.errors import NotFoundError, SpecError
+from dancegraph.graph import _dp
 from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
 from dancegraph.graph.search import placed_motion, root_trajectory, search, structure_pairs
@@ -409,18 +410,26 @@ def test_warm_up_runs_the_kernel_on_a_tiny_graph():
     warm_up()  # the graph store calls this at start; it must work without any dataset
 
 
-def test_search_is_the_exact_viterbi_on_a_medium_graph(demo_graph):
+@pytest.fixture(scope="module")
+def tiled_graph(demo_graph):
     # the demo graph tiled to about 6,400 nodes and 50k edges (as the search benchmark builds its
-    # graphs): more nodes than any beam the search used to keep, so a pruned search can miss
+    # graphs): more nodes than any beam the search used to keep, so a pruned search can miss; and
+    # more than the DP's threshold for spreading a step over threads
     from bench.bench_search import scale_graph
-    from dancegraph.graph.search import _music_arrays, data_costs, edges_below, music_style
-    from dancegraph.rhythm.signatures import COMMON_DISTANCES
 
     arrays, ids, manifest = scale_graph(demo_graph, 50_000)
     g = graph_from_arrays(arrays, dict(manifest, name="tiled", version="t"))
     g.node_ids[:] = ids
     g._index = {n: i for i, n in enumerate(ids)}
-    assert g.n_nodes > 6000
+    assert g.n_nodes > max(6000, _dp.PARALLEL_MIN)
+    return g
+
+
+def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
+    from dancegraph.graph.search import _music_arrays, data_costs, edges_below, music_style
+    from dancegraph.rhythm.signatures import COMMON_DISTANCES
+
+    g = tiled_graph
     song = synthetic_analysis("ABCDE", bars_per_phrase=4)
     spec = _spec(alternatives=1, structure={"repeat": False, "mirror": False})
     alt = search(g, song, spec).alternatives[0]
@@ -437,3 +446,21 @@ def test_search_is_the_exact_viterbi_on_a_medium_graph(demo_graph):
         best = reach + data[t]
     assert not any(b.get("offgraph") for b in alt.per_bar)
     assert alt.cost == pytest.approx(best.min(), rel=1e-5)
+
+
+def test_threads_do_not_change_the_result(tiled_graph):
+    # structure on: each thread costs the tied transitions of its own chunk of states
+    import numba
+
+    song = synthetic_analysis("AABA", bars_per_phrase=4)
+    spec = _spec(alternatives=2)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        one = search(tiled_graph, song, spec)
+    finally:
+        numba.set_num_threads(threads)
+    many = search(tiled_graph, song, spec)
+    for a, b in zip(one.alternatives, many.alternatives, strict=True):
+        assert np.array_equal(a.nodes, b.nodes)
+        assert a.cost == b.cost

@@ -15,26 +15,17 @@ import pytest
 
 from dancegraph.cli import main as cli_main
 from dancegraph.graph.artifact import load_current
-from dancegraph.graph.build import build_graph
 from dancegraph.motion.bvh import read_bvh
-from dancegraph.motion.dataset import import_dataset, load_dataset
-from dancegraph.motion.demo import write_demo_library
+from dancegraph.motion.dataset import load_dataset
 from dancegraph.motion.fbx import fbx_available
-from dancegraph.music.generator import generate_song, write_song
-from dancegraph.store import ObjectStore
+from tests.demo import demo_song, demo_store
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth")
-    store = ObjectStore(root / "store")
-    lib = write_demo_library(root / "lib")
-    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
-    build_graph(load_dataset(store, "demo"), store)
-    song = generate_song(
-        21, meter=4, tempo_bpm=124.0, form=["A", "B", "A"], section_bars={"A": 4, "B": 4}
-    )
-    wav, truth = write_song(song, root, "song")
+    store = demo_store(root)
+    wav, song = demo_song(root)
     return root, store, wav, song
 
 

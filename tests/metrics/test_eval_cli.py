@@ -14,25 +14,15 @@ import pytest
 from dancegraph.cli import main as cli_main
 from dancegraph.eval import ROWS
 from dancegraph.eval.harness import SCALARS, EvalError, evaluate
-from dancegraph.graph.build import build_graph
-from dancegraph.motion.dataset import import_dataset, load_dataset
-from dancegraph.motion.demo import write_demo_library
-from dancegraph.music.generator import generate_song, write_song
 from dancegraph.spec import Spec
-from dancegraph.store import ObjectStore
+from tests.demo import demo_song, demo_store
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
-    store = ObjectStore(root / "store")
-    lib = write_demo_library(root / "lib")
-    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
-    build_graph(load_dataset(store, "demo"), store)
-    song = generate_song(
-        21, meter=4, tempo_bpm=124.0, form=["A", "B", "A"], section_bars={"A": 4, "B": 4}
-    )
-    wav, _ = write_song(song, root, "song")
+    store = demo_store(root)
+    wav, _ = demo_song(root)
     spec = root / "spec.json"
     spec.write_text(
         json.dumps(
@@ -98,7 +88,8 @@ def test_eval_result_scores_a_synthesize_folder(setup, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     row = metrics["rows"]["result"]
     assert row["dances"] == 2 and row["controls_share"] == 1.0 and row["repeat_share"] == 1.0
-    assert metrics["music_beats"] == "timeline"
+    # the song recorded in the timeline lies beside the result folder: its own beats are used
+    assert metrics["music_beats"] == "librosa_percussive"
     assert len(_images((out / "report.html").read_text())) == 4
 
 
@@ -107,7 +98,7 @@ def test_eval_bad_input_gives_coded_errors(setup, capsys, tmp_path):
     assert cli_main(["eval", str(wav), "--store", str(store.root)]) == 2
     assert "eval_usage" in capsys.readouterr().err
     assert cli_main(["eval", "--result", str(tmp_path), "--store", str(store.root)]) == 2
-    assert "eval_bad_result" in capsys.readouterr().err
+    assert "result_not_found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli_main(["eval", str(wav), "--dataset", "demo", "--out", "x", "--rows", "nonsense"])
     with pytest.raises(EvalError) as err:

@@ -15,21 +15,11 @@ def synthesized(tmp_path_factory) -> Path:
     if "root" in _made:
         return _made["root"]
     from dancegraph.cli import main as cli_main
-    from dancegraph.graph.build import build_graph
-    from dancegraph.motion.dataset import import_dataset, load_dataset
-    from dancegraph.motion.demo import write_demo_library
-    from dancegraph.music.generator import generate_song, write_song
-    from dancegraph.store import ObjectStore
+    from tests.demo import demo_song, demo_store
 
     root = tmp_path_factory.mktemp("preview")
-    store = ObjectStore(root / "store")
-    lib = write_demo_library(root / "lib")
-    import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
-    build_graph(load_dataset(store, "demo"), store)
-    song = generate_song(
-        21, meter=4, tempo_bpm=124.0, form=["A", "B"], section_bars={"A": 4, "B": 4}
-    )
-    wav, _ = write_song(song, root, "song")
+    store = demo_store(root)
+    wav, _ = demo_song(root, form=("A", "B"))
     spec = root / "spec.json"
     spec.write_text(
         json.dumps(

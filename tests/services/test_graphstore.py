@@ -6,7 +6,6 @@ The graph comes from the project's own pipeline: generated demo library → ``im
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -15,27 +14,20 @@ from fastapi.testclient import TestClient
 
 from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import artifact
-from dancegraph.graph.build import build_graph
-from dancegraph.motion.dataset import import_dataset, load_dataset
-from dancegraph.motion.demo import write_demo_library
+from dancegraph.motion.dataset import load_dataset
 from dancegraph.music.analysis import analyze
 from dancegraph.music.generator import generate_song
 from dancegraph.store import ObjectStore
 from services.graphstore.app import create_app
 from services.graphstore.client import HttpGraphStore, LocalGraphStore
+from tests.demo import demo_store
 
 PROBLEM = "application/problem+json"
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> ObjectStore:
-    root = tmp_path_factory.mktemp("graphstore")
-    store = ObjectStore(root / "store")
-    lib = write_demo_library(root / "lib")
-    manifest = json.loads((lib / "manifest.json").read_text())
-    import_dataset(lib, "demo", store, manifest)
-    build_graph(load_dataset(store, "demo"), store)
-    return store
+    return demo_store(tmp_path_factory.mktemp("graphstore"))
 
 
 @pytest.fixture(scope="module")
