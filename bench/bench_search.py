@@ -22,6 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -235,7 +236,7 @@ def main() -> int:
     for r in rows:
         print(f"{r[0]:<{w[0]}}  {r[1]:<{w[1]}}  {r[2]}")
     print(
-        f"\nmachine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; paper (i7-8700): 103k edges 148 s song 1.88 s, 728k edges 11.2 s"
+        f"\nmachine: {os.cpu_count()} CPUs ({numba.get_num_threads()} search threads, NUMBA_NUM_THREADS), load average {os.getloadavg()[0]:.1f}; paper (i7-8700): 103k edges 148 s song 1.88 s, 728k edges 11.2 s"
     )
     return 0
 

@@ -374,6 +374,7 @@ def _add_synthesize(sub) -> None:
                 "files": done["files"],
                 "analysis": done["analysis"],
                 "graph": {"name": graph.name, "version": graph.version},
+                "music_style": done["search"]["constraints"].get("music_style"),
                 "alternatives": [
                     {
                         "index": a["index"],

@@ -188,7 +188,7 @@ def render_path(
         dance, report["drift"] = follow_plan(dance, frames[:, 0] - frames[0, 0], plan)
     if foot_cleanup:
         dance, skate = clean_foot_skate(dance)
-        report["foot_skate"] = _plain(skate)
+        report["foot_skate"] = to_json_types(skate)
     total = expected + int(frames[0, 0])
     if duration_s is not None:
         total = max(total, int(round(duration_s * fps)))
@@ -286,8 +286,8 @@ def render(
             {
                 "index": k,
                 "files": entry_files,
-                "cost": _plain(alt.get("cost")),
-                "violations": _plain(alt.get("violations", [])),
+                "cost": to_json_types(alt.get("cost")),
+                "violations": to_json_types(alt.get("violations", [])),
                 "frames": dance.n_frames,
                 "bars": [_bar_entry(graph, alt, b, node) for b, node in enumerate(nodes)],
                 "seams": report["seams"],
@@ -295,7 +295,7 @@ def render(
                 "stage": report["stage"],
                 "drift": report["drift"],
                 **{
-                    key: _plain(v)
+                    key: to_json_types(v)
                     for key, v in alt.items()
                     if key not in {"nodes", "per_bar", "cost", "violations", "placements"}
                 },
@@ -315,9 +315,9 @@ def render(
             "warnings": list(analysis.warnings),
         },
         "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
-        "phrases": _plain(list(analysis.phrases)),
+        "phrases": to_json_types(list(analysis.phrases)),
         "alternatives": alt_entries,
-        "constraints": _plain(found.get("constraints", {})),
+        "constraints": to_json_types(found.get("constraints", {})),
         "provenance": _provenance(graph, spec, analysis, extra_provenance),
         "render_seconds": round(time.perf_counter() - t0, 3),
     }
@@ -338,7 +338,7 @@ def _music_bar(analysis, frames: np.ndarray, b: int) -> dict:
     if b < len(analysis.bar_beats):
         entry["beats"] = [float(x) for x in analysis.bar_beats[b]]
     if b < len(analysis.tags):
-        entry["tag"] = _plain(dict(analysis.tags[b]))
+        entry["tag"] = to_json_types(dict(analysis.tags[b]))
     return entry
 
 
@@ -362,7 +362,9 @@ def _bar_entry(graph: MotionGraph, alt: dict, b: int, node_id: str) -> dict:
     }
     per_bar = alt.get("per_bar") or []
     if b < len(per_bar):
-        entry["cost"] = _plain({k: v for k, v in per_bar[b].items() if k not in {"node", "bar"}})
+        entry["cost"] = to_json_types(
+            {k: v for k, v in per_bar[b].items() if k not in {"node", "bar"}}
+        )
     return entry
 
 
@@ -404,7 +406,7 @@ def _provenance(graph: MotionGraph, spec: Spec, analysis, extra: dict | None) ->
         "rendered_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     if extra:
-        prov.update(_plain(extra))
+        prov.update(to_json_types(extra))
     return prov
 
 
@@ -416,16 +418,16 @@ def _beatnet_version() -> str | None:
     return f"BeatNet {BEATNET_VERSION} (CC BY 4.0)"
 
 
-def _plain(obj):
+def to_json_types(obj):
     """Numpy scalars/arrays and tuples inside ``obj`` → JSON types (NaN/inf → None)."""
     if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
+        return {str(k): to_json_types(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
+        return [to_json_types(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
+        return to_json_types(obj.tolist())
     if isinstance(obj, np.generic):
-        return _plain(obj.item())
+        return to_json_types(obj.item())
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj

@@ -9,7 +9,7 @@ content-addressed into the object store (``models/<kind>-<hash12>.dgm``) and the
 ``style_model`` / ``rhythm_model`` (kind, version, sha256, store key, classes, training).
 
 Search (``graph.search.music_inputs``): where the song's audio is at hand (``render.synthesize``,
-the worker's job pipeline), ``add_music_terms`` puts the graph's learned music inputs into the
+the worker's job pipeline, ``dancegraph eval``), ``add_music_terms`` puts the graph's learned music inputs into the
 ``MusicAnalysis``, keyed by each model's content hash: ``learned_style`` = E_M of the 8-s log-mel
 window from each bar's start (the same window E_D sees for a dance bar), ``learned_topk`` = the
 rhythm model's top-3 (E_MR + E_RS on ``bar_onset_rms`` and the bar's descriptor style). The

@@ -9,7 +9,9 @@ Style (32-d, one space for both modalities):
   ``(N, 32)``.
 - ``StyleModel``: both encoders, a classification head per branch and a DEC clustering head per
   branch (12 music and 20 dance clusters). Losses: ``branch_loss`` (Eq. 1, λ1·CE + λ2·KL(P‖Q))
-  and, in phase 2, λ3·L_M + λ4·L_D + λ5·MSE(Z_M, Z_D) (Eq. 2).
+  and, in phase 2, λ3·L_M + λ4·L_D + λ5·MSE(Z_M, Z_D) (Eq. 2) plus a variance hinge on each
+  branch (VICReg's variance term, not in the paper: ``variance_hinge``), without which the MSE
+  term collapses every embedding onto one point of the sphere.
 
 Rhythm (13 common signatures):
 
@@ -33,6 +35,11 @@ DIM = 32
 MUSIC_CLUSTERS = 12
 DANCE_CLUSTERS = 20
 LAMBDAS = {"cls": 0.7, "dec": 0.3, "music": 0.5, "dance": 0.5, "pair": 5.0, "ce": 0.4, "ham": 0.6}
+#: Weight of the variance hinge in phase 2 (a departure from Eq. 2, see ``variance_hinge``).
+VAR_WEIGHT = 5.0
+#: Per-dimension standard deviation the hinge asks of a batch: 1 = points spread evenly over the
+#: sphere of radius √32 (their per-dimension variances sum to 32 minus the squared mean).
+VAR_FLOOR = 1.0
 
 #: Bones between the main joints (names of ``MAIN_JOINTS``): the E_D joint graph.
 JOINT_EDGES: tuple[tuple[str, str], ...] = (
@@ -181,6 +188,18 @@ class DEC(nn.Module):
         return F.kl_div(q.clamp_min(1e-9).log(), p, reduction="batchmean")
 
 
+def variance_hinge(z: torch.Tensor) -> torch.Tensor:
+    """Mean over the 32 dimensions of max(0, ``VAR_FLOOR`` − std over the batch) of ``z (N, 32)``.
+
+    VICReg's variance term (Bardes et al. 2022). λ5·MSE(Z_M, Z_D) is about 15 times the
+    classification terms when phase 2 starts, and the cheapest way to lower it is to send every
+    bar of both branches to one point (on the sphere: the output layer's bias outgrows the rest),
+    which Eq. 2's cross-entropy, at most ln(classes) per branch, cannot outweigh. This term is zero
+    while a batch stays spread and grows as it collapses.
+    """
+    return F.relu(VAR_FLOOR - torch.sqrt(z.var(dim=0) + 1e-4)).mean()
+
+
 class StyleModel(nn.Module):
     """E_M and E_D with their classification and DEC heads; ``n_classes`` style classes."""
 
@@ -202,13 +221,22 @@ class StyleModel(nn.Module):
         return loss, z, logits
 
     def paired_loss(
-        self, xm: torch.Tensor, ym: torch.Tensor, xd: torch.Tensor, yd: torch.Tensor
+        self,
+        xm: torch.Tensor,
+        ym: torch.Tensor,
+        xd: torch.Tensor,
+        yd: torch.Tensor,
+        pair_weight: float = LAMBDAS["pair"],
     ) -> tuple:
-        """Eq. 2: λ3·L_M + λ4·L_D + λ5·MSE(Z_M, Z_D); returns ``(loss, mse)``."""
+        """Eq. 2 and the variance hinge: λ3·L_M + λ4·L_D + ``pair_weight``·MSE(Z_M, Z_D) +
+        ``VAR_WEIGHT``·(hinge(Z_M) + hinge(Z_D)); returns ``(loss, mse)``.
+
+        ``pair_weight`` is λ5 once training has warmed it up (``train``)."""
         lm, zm, _ = self.branch_loss("music", xm, ym)
         ld, zd, _ = self.branch_loss("dance", xd, yd)
         mse = F.mse_loss(zm, zd)
-        return LAMBDAS["music"] * lm + LAMBDAS["dance"] * ld + LAMBDAS["pair"] * mse, mse
+        spread = VAR_WEIGHT * (variance_hinge(zm) + variance_hinge(zd))
+        return LAMBDAS["music"] * lm + LAMBDAS["dance"] * ld + pair_weight * mse + spread, mse
 
 
 class _RhythmEncoder(nn.Module):

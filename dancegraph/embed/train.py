@@ -1,8 +1,10 @@
 """Training of the style and rhythm models (``dancegraph train style|rhythm``).
 
 Style: phase 1 (the first ``phase1_epochs``) trains each branch on its own labelled bars (Eq. 1);
-phase 2 trains both on the paired bars with the MSE between Z_M and Z_D added (Eq. 2). Without
-pairs, every epoch is phase 1. Rhythm: both branches and the shared classifier on every labelled
+phase 2 trains both on the paired bars with the MSE between Z_M and Z_D added (Eq. 2), its weight
+λ5 warmed up linearly over the first ``PAIR_WARMUP`` phase-2 epochs, and a variance hinge that
+keeps each branch's embeddings spread (``nets.variance_hinge``; without it phase 2 collapsed every
+bar onto one point). Without pairs, every epoch is phase 1. Rhythm: both branches and the shared classifier on every labelled
 bar (Eq. 3); the style vector fed to E_RS is the bar's descriptor style (``descriptor-v1``),
 which the graph build and the music analysis both have without audio or a style model.
 
@@ -27,8 +29,10 @@ import torch
 
 from dancegraph.embed.data import TrainingDataError, TrainingSet, load_training_set
 from dancegraph.embed.model import build_net, load_model, save_model
+from dancegraph.embed.nets import LAMBDAS
 from dancegraph.rhythm.signatures import COMMON_BITS, COMMON_SIGNATURES, SLOT_WEIGHTS
 
+PAIR_WARMUP = 3  # phase-2 epochs over which λ5 rises linearly to its full value
 CHECKPOINT = "checkpoint.pt"
 METRICS = "metrics.jsonl"
 Progress = Callable[[str], None]
@@ -113,7 +117,9 @@ def _embed(net, branch: str, xs: list, chunk: int = 32) -> torch.Tensor:
 
 @torch.no_grad()
 def style_metrics(net, ts: TrainingSet, classes: list[str]) -> dict:
-    """Accuracy of each branch's classifier on train and held-out bars; mean paired distance."""
+    """Accuracy of each branch's classifier on train and held-out bars; mean paired distance;
+    ``<branch>_spread``: the mean over the 32 dimensions of the embeddings' standard deviation
+    over all the branch's bars (about 1 when spread over the sphere of radius √32, 0 collapsed)."""
     net.eval()
     out: dict = {}
     z = {}
@@ -122,6 +128,8 @@ def style_metrics(net, ts: TrainingSet, classes: list[str]) -> dict:
         z[name] = _embed(net, name, br.style_x)
         if not len(br):
             continue
+        if len(br) > 1:
+            out[f"{name}_spread"] = round(float(z[name].std(0).mean()), 4)
         pred = getattr(net, f"{name}_cls")(z[name]).argmax(1).numpy()
         truth = np.array([classes.index(lab) if lab in classes else -1 for lab in br.label])
         test = np.array(br.test)
@@ -160,7 +168,7 @@ def rhythm_metrics(net, ts: TrainingSet) -> dict:
     return out
 
 
-def _style_epoch(net, opt, ts, classes, phase, rng, batch) -> float:
+def _style_epoch(net, opt, ts, classes, phase, rng, batch, pair_weight) -> float:
     losses = []
     if phase == 1:
         steps = []
@@ -185,7 +193,9 @@ def _style_epoch(net, opt, ts, classes, phase, rng, batch) -> float:
             mi, di = ts.pairs[b, 0], ts.pairs[b, 1]
             ym = torch.as_tensor([classes.index(ts.music.label[i]) for i in mi])
             yd = torch.as_tensor([classes.index(ts.dance.label[i]) for i in di])
-            loss, _ = net.paired_loss(_t(ts.music.style_x, mi), ym, _t(ts.dance.style_x, di), yd)
+            loss, _ = net.paired_loss(
+                _t(ts.music.style_x, mi), ym, _t(ts.dance.style_x, di), yd, pair_weight
+            )
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -285,7 +295,9 @@ def train(
         net.train()
         if kind == "style":
             phase = 1 if epoch < phase1 else 2
-            loss = _style_epoch(net, opt, ts, classes, phase, rng, batch)
+            # a function of the epoch alone, so a resumed run warms up as an uninterrupted one
+            pair_weight = LAMBDAS["pair"] * min(1.0, (epoch - phase1 + 1) / PAIR_WARMUP)
+            loss = _style_epoch(net, opt, ts, classes, phase, rng, batch, pair_weight)
             metrics = style_metrics(net, ts, classes)
         else:
             phase = 1

@@ -39,7 +39,7 @@ from dancegraph.motion.features import joint_speed, kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import resample
 from dancegraph.motion.skeleton import Motion
-from dancegraph.render import _plain
+from dancegraph.render import to_json_types
 from dancegraph.spec import Spec
 
 ROW_TITLES = {
@@ -495,7 +495,7 @@ def evaluate(
                 "rows": {
                     row: {
                         "mean": {k: _mean(d.metrics.get(k) for d in ds) for k in SCALARS},
-                        "dances": [_plain(d.metrics) for d in ds],
+                        "dances": [to_json_types(d.metrics) for d in ds],
                     }
                     for row, ds in dances.items()
                 },
@@ -507,7 +507,7 @@ def evaluate(
         "graph": {"name": lib.graph.name, "version": lib.graph.version},
         "spec": spec.model_dump(mode="json"),
         "fps": EVAL_FPS,
-        "rows": _plain(table),
+        "rows": to_json_types(table),
         "songs": songs_out,
         "seconds": round(time.perf_counter() - t0, 2),
     }
@@ -610,11 +610,11 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
         "spec": spec.model_dump(mode="json"),
         "fps": EVAL_FPS,
         "music_beats": source,
-        "rows": _plain(lib_rows),
+        "rows": to_json_types(lib_rows),
         "songs": [
             {
                 "song": folder.name,
-                "rows": {"result": {"dances": [_plain(d.metrics) for d in dances]}},
+                "rows": {"result": {"dances": [to_json_types(d.metrics) for d in dances]}},
             }
         ],
     }

@@ -120,7 +120,7 @@ def _music_arrays(analysis) -> dict:
     return {"bars": bars, "n": n, "topk": topk, "onset": onset, "tags": tags}
 
 
-def _bars_in(spec_range, seconds, bars: np.ndarray, field_name: str) -> np.ndarray:
+def bars_in(spec_range, seconds, bars: np.ndarray, field_name: str) -> np.ndarray:
     """Bar indices covered by an inclusive bar range or a time range (all bars when neither)."""
     n = bars.shape[0]
     if spec_range is not None:
@@ -210,7 +210,7 @@ def structure_pairs(
 # node matching
 
 
-def _match_nodes(
+def match_nodes(
     graph: MotionGraph, node: str | None, tag: str | None, field_name: str
 ) -> np.ndarray:
     if tag is not None:
@@ -394,6 +394,9 @@ def bar_terms(
 
 def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
+    from dancegraph import jit
+
+    jit.warm_up(music=False)  # compiles into the shared kernel cache only under its lock
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
     zm, music = music_inputs(music, graph, analysis)
@@ -422,8 +425,8 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
 
     for i, ex in enumerate(spec.exclude):
         fname = f"exclude[{i}]"
-        nodes = _match_nodes(graph, ex.node, ex.tag, f"{fname}.{'tag' if ex.tag else 'node'}")
-        bars = _bars_in(ex.bars, ex.seconds, music["bars"], fname)
+        nodes = match_nodes(graph, ex.node, ex.tag, f"{fname}.{'tag' if ex.tag else 'node'}")
+        bars = bars_in(ex.bars, ex.seconds, music["bars"], fname)
         keep = np.ones(n_nodes, dtype=bool)
         keep[nodes] = False
         restrict(bars, keep)
@@ -448,7 +451,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         restrict(np.array([mp.bar]), motif == mp.motif)
     target_sig = None
     if spec.signature is not None:
-        target_sig = _target_signature(graph, spec.signature.target, "signature.target")
+        target_sig = target_signature(graph, spec.signature.target, "signature.target")
     recreate = None
     if spec.recreate is not None:
         try:
@@ -464,8 +467,8 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     pinned: dict[int, tuple[int, str]] = {}
     for i, inc in enumerate(spec.include):
         fname = f"include[{i}]"
-        node = _match_nodes(graph, inc.node, None, f"{fname}.node")[0]
-        bars = _bars_in(inc.bars, inc.seconds, music["bars"], fname)
+        node = match_nodes(graph, inc.node, None, f"{fname}.node")[0]
+        bars = bars_in(inc.bars, inc.seconds, music["bars"], fname)
         ok = np.array([t for t in bars.tolist() if allowed_at(t)[node]], dtype=np.int64)
         if ok.size == 0:
             raise SpecError(
@@ -834,7 +837,7 @@ def _blame(spec: Spec, t: int) -> str:
     return "exclude"
 
 
-def _target_signature(graph: MotionGraph, target: str, field_name: str) -> np.ndarray:
+def target_signature(graph: MotionGraph, target: str, field_name: str) -> np.ndarray:
     mot = graph.manifest.get("motifs", {})
     k = int(mot.get("k", int(np.max(graph.motif)) + 1))
     if target == "dataset":

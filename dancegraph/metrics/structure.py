@@ -14,7 +14,7 @@ import numpy as np
 
 from dancegraph.graph import choreography
 from dancegraph.graph.artifact import MotionGraph
-from dancegraph.graph.search import _bars_in, _match_nodes, _target_signature, structure_pairs
+from dancegraph.graph.search import bars_in, match_nodes, structure_pairs, target_signature
 from dancegraph.metrics.physical import stage_report
 from dancegraph.spec import Spec
 
@@ -43,7 +43,7 @@ def structure_satisfaction(nodes: np.ndarray, tags: list[dict], mirror_of: np.nd
 def signature_distance(graph: MotionGraph, nodes: np.ndarray, target: str = "dataset") -> dict:
     """Chi-square distance of the path's motif histogram to ``target``'s signature ('dataset' or a
     take id). Returns ``chi2``, ``histogram (k,)`` and ``target (k,)`` (normalised)."""
-    goal = np.asarray(_target_signature(graph, target, "signature.target"), dtype=float)
+    goal = np.asarray(target_signature(graph, target, "signature.target"), dtype=float)
     hist = choreography.motif_signature(np.asarray(graph.motif)[np.asarray(nodes)], goal.size)
     return {
         "chi2": choreography.chi_square(hist, goal),
@@ -73,7 +73,7 @@ def control_satisfaction(
     items = []
     for i, inc in enumerate(spec.include):
         name = f"include[{i}]"
-        at = _bars_in(inc.bars, inc.seconds, bars, name)
+        at = bars_in(inc.bars, inc.seconds, bars, name)
         want = graph.node_index(inc.node) if graph.has_node(inc.node) else -1
         hits = int((nodes[at] == want).sum())
         items.append(
@@ -81,8 +81,8 @@ def control_satisfaction(
         )
     for i, exc in enumerate(spec.exclude):
         name = f"exclude[{i}]"
-        at = _bars_in(exc.bars, exc.seconds, bars, name)
-        banned = _match_nodes(graph, exc.node, exc.tag, name)
+        at = bars_in(exc.bars, exc.seconds, bars, name)
+        banned = match_nodes(graph, exc.node, exc.tag, name)
         used = int(np.isin(nodes[at], banned).sum())
         items.append(
             {"control": name, "satisfied": used == 0, "detail": f"{used} bars use excluded nodes"}
