@@ -4,7 +4,8 @@
    per-bar 8-s windows, E_MR + E_RS over its bars; E_D over 90 dance phrases.
 2. Generated paired set (``write_paired_set``; every fifth song held out): style model trained
    (phase 1 then phase 2), rhythm model trained; held-out style accuracy (music, dance), mean
-   paired distance ‖Z_M − Z_D‖ at the end of phase 1 and of phase 2, rhythm top-1/top-3.
+   paired distance ‖Z_M − Z_D‖ and embedding spread at the end of phase 1 and of phase 2,
+   rhythm top-1/top-3.
 3. CMU dance (salsa vs modern, bars on a fixed grid, every fourth take held out): E_D style
    accuracy of a dance-only style model.
 4. A t-SNE image of held-out music and dance embeddings: ``docs/img/embeddings.png``.
@@ -197,6 +198,10 @@ def main(argv: list[str] | None = None) -> int:
         "held_out": {k: v for k, v in rows[-1].items() if k.endswith("_test")},
         "pair_dist_test_after_phase1": last1.get("pair_dist_test"),
         "pair_dist_test_after_phase2": rows[-1].get("pair_dist_test"),
+        # mean per-dimension std of all bars' embeddings (about 1 spread over the sphere, 0
+        # collapsed onto one point)
+        "spread_after_phase1": {k: v for k, v in last1.items() if k.endswith("_spread")},
+        "spread_after_phase2": {k: v for k, v in rows[-1].items() if k.endswith("_spread")},
         "train_acc": {k: v for k, v in rows[-1].items() if k.endswith("_train")},
     }
     t = time.perf_counter()

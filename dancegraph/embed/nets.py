@@ -85,7 +85,8 @@ class _GRUHead(nn.Module):
     def forward(self, seq: torch.Tensor) -> torch.Tensor:
         _, h = self.gru(seq)
         # on the sphere of radius √32: the paired MSE (λ5 = 5) cannot be won by shrinking every
-        # embedding toward one point, which collapsed the classes in phase 2
+        # embedding toward zero (sending them all to one point of the sphere is stopped by
+        # ``variance_hinge``)
         return F.normalize(self.out(h[-1]), dim=1) * DIM**0.5
 
 

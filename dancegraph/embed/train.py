@@ -2,7 +2,9 @@
 
 Style: phase 1 (the first ``phase1_epochs``) trains each branch on its own labelled bars (Eq. 1);
 phase 2 trains both on the paired bars with the MSE between Z_M and Z_D added (Eq. 2), its weight
-λ5 warmed up linearly over the first ``PAIR_WARMUP`` phase-2 epochs, and a variance hinge that
+λ5 warmed up linearly over the first ``PAIR_WARMUP`` phase-2 epochs, the learning rate lowered
+to ``PHASE2_LR`` of phase 1's (at full rate the λ5 term threw the weights about: loss and paired
+distance jumped back up between epochs), and a variance hinge that
 keeps each branch's embeddings spread (``nets.variance_hinge``; without it phase 2 collapsed every
 bar onto one point). Without pairs, every epoch is phase 1. Rhythm: both branches and the shared classifier on every labelled
 bar (Eq. 3); the style vector fed to E_RS is the bar's descriptor style (``descriptor-v1``),
@@ -33,6 +35,7 @@ from dancegraph.embed.nets import LAMBDAS
 from dancegraph.rhythm.signatures import COMMON_BITS, COMMON_SIGNATURES, SLOT_WEIGHTS
 
 PAIR_WARMUP = 3  # phase-2 epochs over which λ5 rises linearly to its full value
+PHASE2_LR = 0.25  # phase 2's learning rate as a fraction of ``lr``
 CHECKPOINT = "checkpoint.pt"
 METRICS = "metrics.jsonl"
 Progress = Callable[[str], None]
@@ -296,7 +299,9 @@ def train(
         if kind == "style":
             phase = 1 if epoch < phase1 else 2
             # a function of the epoch alone, so a resumed run warms up as an uninterrupted one
-            pair_weight = LAMBDAS["pair"] * min(1.0, (epoch - phase1 + 1) / PAIR_WARMUP)
+            pair_weight = LAMBDAS["pair"] * min(1.0, max(0, epoch - phase1 + 1) / PAIR_WARMUP)
+            for group in opt.param_groups:
+                group["lr"] = lr * (PHASE2_LR if phase == 2 else 1.0)
             loss = _style_epoch(net, opt, ts, classes, phase, rng, batch, pair_weight)
             metrics = style_metrics(net, ts, classes)
         else:

@@ -37,6 +37,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -265,6 +266,9 @@ def write_graph(
 
     ``version`` defaults to a UTC timestamp plus a short content hash. The folder is written
     under a temporary name and renamed into place; ``current`` is then swapped atomically.
+    The same build written twice within one second names the same default version: the stored
+    one is kept (its arrays are identical) and made current. An explicit ``version`` that
+    exists raises ``FileExistsError``.
     """
     missing = [a for a in ARRAYS if a not in arrays]
     if missing:
@@ -285,6 +289,7 @@ def write_graph(
         (tmp / "node_ids.txt").write_text("\n".join(node_ids))
         checksums["node_ids.txt"] = file_sha256(tmp / "node_ids.txt")
         digest.update(checksums["node_ids.txt"].encode())
+    auto_named = version is None
     if version is None:
         version = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + digest.hexdigest()[:8]
     if not _VERSION_RE.match(version):
@@ -303,12 +308,26 @@ def write_graph(
     )
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=_json_default))
     final = base / version
-    if final.exists():
-        raise FileExistsError(f"graph version {name}/{version} already exists")
-    os.replace(tmp, final)
+    try:
+        if final.exists():
+            raise FileExistsError(f"graph version {name}/{version} already exists")
+        os.replace(tmp, final)
+    except OSError as exc:  # exists, or a concurrent writer renamed the same version first
+        if not (auto_named and _same_checksums(final, checksums)):
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise FileExistsError(f"graph version {name}/{version} already exists") from exc
+        shutil.rmtree(tmp, ignore_errors=True)
     if make_current:
         set_current(store, name, version)
     return graph_key(name, version)
+
+
+def _same_checksums(folder: Path, checksums: dict) -> bool:
+    try:
+        stored = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return stored.get("checksums") == checksums
 
 
 def _json_default(obj):

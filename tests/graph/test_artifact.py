@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -56,6 +57,25 @@ def test_new_version_loads_while_old_keeps_answering(tmp_path, demo_build):
     assert artifact.load_current(store, "demo").version == "v1"
     with pytest.raises(FileExistsError):
         _write(store, demo_build, "v1")
+
+
+def test_same_build_twice_in_one_second_is_one_version(tmp_path, demo_build, monkeypatch):
+    store = ObjectStore(tmp_path / "store")
+    arrays, ids, manifest = demo_build
+    frozen = time.gmtime()
+    monkeypatch.setattr(artifact.time, "gmtime", lambda *_: frozen)  # both builds in one second
+    first = artifact.write_graph(store, "demo", arrays, manifest, node_ids=ids)
+    _write(store, demo_build, "other")  # current moves away
+    second = artifact.write_graph(store, "demo", arrays, manifest, node_ids=ids)
+    assert second == first  # same content, same second: the stored version is kept...
+    assert artifact.current_version(store, "demo") == first.rsplit("/", 1)[1]  # ...and current
+    assert sorted(artifact.list_versions(store, "demo")) == sorted(
+        [first.rsplit("/", 1)[1], "other"]
+    )
+    assert not [p for p in store.path("graphs/demo").iterdir() if p.name.startswith(".tmp")]
+    changed = {**arrays, "node_bar": np.asarray(arrays["node_bar"]) + 1}
+    third = artifact.write_graph(store, "demo", changed, manifest, node_ids=ids)
+    assert third != first  # other content in the same second: another version
 
 
 def test_corrupt_and_missing_artifacts_are_named(tmp_path, demo_build):
