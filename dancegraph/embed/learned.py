@@ -114,6 +114,20 @@ def store_root(graph) -> Path | None:
     return graph.path.parents[2] if graph.path is not None else None
 
 
+def load_graph_models(graph) -> list[LoadedModel]:
+    """Load and validate the learned models a graph was built with (none for a descriptor
+    graph), so a corrupted, modified or wrong-version model file fails when the graph is loaded
+    (``ModelFileError`` naming the file), not in the middle of a job; cached per process."""
+    from dancegraph.embed.model import load_model
+
+    entry = graph.manifest.get("embedding") or {}
+    records = [entry[k] for k in ("style_model", "rhythm_model") if entry.get(k)]
+    root = store_root(graph)
+    if not records or root is None:
+        return []
+    return [load_model(root / rec["key"], sha256=rec["sha256"]) for rec in records]
+
+
 def bridged_style(entry: dict, music_desc: np.ndarray) -> np.ndarray:
     """Music style ``(T, 32)`` in a graph's space: the descriptor style itself, or bridged into
     the learned space when the graph's ``embedding`` entry has a style model."""

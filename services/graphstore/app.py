@@ -22,6 +22,7 @@ Endpoints:
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -30,23 +31,34 @@ from fastapi import Body, FastAPI
 from fastapi.responses import JSONResponse
 
 from dancegraph import __version__
+from dancegraph.errors import DanceGraphError
 from dancegraph.paths import store_dir
 from dancegraph.store import ObjectStore
 from services.api.problems import install as install_problem_handlers
 from services.config import get_settings
 from services.graphstore.client import LocalGraphStore
 
+log = logging.getLogger("dancegraph.graphstore")
+
 
 def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastAPI:
     """The graph-store app over ``store`` (default: the embedded object store, opened lazily).
-    ``warm_up``: compile the search kernel at start-up (the served app does)."""
+    ``warm_up``: at start-up compile the search kernel and load every current graph with its
+    models, logging any that cannot be loaded (the served app does)."""
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         if warm_up:
             from dancegraph import jit
+            from dancegraph.graph import artifact
 
             jit.warm_up(music=False)
+            local = graphs()
+            for name in artifact.list_graphs(local.store):
+                try:
+                    local.graph(name)
+                except DanceGraphError as exc:
+                    log.error("graph %s cannot be loaded: [%s] %s", name, exc.code, exc.message)
         yield
 
     app = FastAPI(

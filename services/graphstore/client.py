@@ -15,6 +15,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 from pydantic import ValidationError
 
+from dancegraph.embed.learned import load_graph_models
 from dancegraph.errors import DanceGraphError, NotFoundError, SpecError
 from dancegraph.graph import artifact
 from dancegraph.motion.skeleton import Motion, Skeleton
@@ -116,6 +117,7 @@ class LocalGraphStore(GraphStoreClient):
             if cached is not None and cached.version == version:
                 return cached
         loaded = artifact.load_graph(self.store.path(artifact.graph_key(name, version)))
+        load_graph_models(loaded)  # a bad model file fails here, not in a job
         with self._lock:
             self._graphs[name] = loaded
         return loaded
@@ -128,13 +130,15 @@ class LocalGraphStore(GraphStoreClient):
             return cached
         try:
             key = artifact.graph_key(name, version)
-            return artifact.load_graph(self.store.path(key))
+            loaded = artifact.load_graph(self.store.path(key))
         except (ValueError, NotFoundError) as exc:
             raise NotFoundError(
                 f"dataset {name!r} has no graph version {version!r}",
                 code="unknown_graph_version",
                 field="version",
             ) from exc
+        load_graph_models(loaded)
+        return loaded
 
     def loaded(self) -> dict[str, str]:
         with self._lock:

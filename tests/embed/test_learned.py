@@ -7,6 +7,7 @@ these tests check the machinery, not the accuracy (bench/bench_embed.py measures
 from __future__ import annotations
 
 import json
+import shutil
 import struct
 
 import numpy as np
@@ -278,6 +279,21 @@ def learned_graph(demo_store, style_run, rhythm_run):
         rhythm_model=str(rhythm_run[0] / rhythm_run[1]["path"]),
     )
     return artifact.load_current(demo_store, "demo")
+
+
+def test_a_corrupted_stored_model_fails_when_the_graph_loads(learned_graph, demo_store, tmp_path):
+    from dancegraph.errors import ModelFileError
+    from dancegraph.store import ObjectStore
+    from services.graphstore.client import LocalGraphStore
+
+    copy = ObjectStore(shutil.copytree(demo_store.root, tmp_path / "store"))
+    assert LocalGraphStore(copy).graph("demo").version == learned_graph.version
+    record = learned_graph.manifest["embedding"]["style_model"]
+    model_file = copy.path(record["key"])
+    model_file.write_bytes(_rewrite(model_file, flip=500))
+    with pytest.raises(ModelFileError) as err:
+        LocalGraphStore(copy).graph("demo")  # a fresh graph store: fails at load, naming the file
+    assert record["key"].split("/")[-1] in err.value.message
 
 
 @pytest.fixture(scope="module")

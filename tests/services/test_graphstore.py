@@ -173,3 +173,19 @@ def test_new_version_loads_while_old_keeps_answering(store: ObjectStore, tmp_pat
         assert local.graph_version("demo", old.version).version == old.version
     finally:
         artifact.set_current(store, "demo", old.version)
+
+
+def test_start_up_loads_every_graph_and_logs_the_broken_ones(
+    store: ObjectStore, tmp_path: Path, caplog: pytest.LogCaptureFixture
+):
+    import shutil
+
+    copy = ObjectStore(shutil.copytree(store.root, tmp_path / "store"))
+    broken = copy.path("graphs/broken")
+    broken.mkdir(parents=True)
+    (broken / "current").write_text("nosuch-version")
+    with caplog.at_level("ERROR", logger="dancegraph.graphstore"):
+        with TestClient(create_app(copy, warm_up=True)) as warm:
+            # the good graph is in memory before the first request; the broken one is named
+            assert set(warm.get("/healthz").json()["loaded"]) == {"demo"}
+    assert "graph broken cannot be loaded" in caplog.text
