@@ -5,7 +5,8 @@ Rules:
 - A job moves queued → running → succeeded | failed, or to cancelled from queued/running.
   Final states (succeeded, failed, cancelled) never change again: every write is a conditional
   ``UPDATE … WHERE status NOT IN (final)``, so a late worker cannot overwrite a cancel.
-- ``claim_job`` counts attempts; the worker calls ``heartbeat`` while it works; the reaper looks
+- ``claim_job`` takes a job's lease (queued, or running with a stale heartbeat) and counts
+  attempts; the worker calls ``heartbeat`` while it works; the reaper looks
   for running jobs whose heartbeat is older than ``Settings.job_timeout_s``.
 - Results live in the object store under ``jobs/<job_id>/`` (``result_key``):
   ``alternatives/<k>.bvh``, ``alternatives/<k>.fbx`` (k counts from 0) and ``timeline.json``.
@@ -22,7 +23,7 @@ import secrets
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -202,22 +203,44 @@ def _update_live(
     return res.rowcount == 1
 
 
-def claim_job(session: Session, job_id: str, worker: str) -> Job | None:
-    """Mark a queued (or re-delivered running) job as running by ``worker``; None when final."""
+def claim_job(
+    session: Session,
+    job_id: str,
+    worker: str,
+    *,
+    stale_after_s: float,
+    stages: tuple[str, ...] | None = None,
+) -> Job | None:
+    """Take the lease of a job for ``worker``; the fresh row, or None when it is not ours to run.
+
+    Claims a ``queued`` job, or a ``running`` one whose heartbeat is older than
+    ``stale_after_s`` (its worker died); a duplicate delivery of a job that a live worker holds
+    claims nothing. ``stages``: a ``running`` job in one of these stages is also claimable with a
+    fresh heartbeat (the hand-over from the analysis queue to the FBX queue, which does not
+    count as a new attempt).
+    """
     now = utcnow()
-    ok = _update_live(
-        session,
-        job_id,
-        {
-            "status": RUNNING,
-            "stage": "starting",
-            "worker": worker[:200],
-            "attempts": Job.attempts + 1,
-            "started_at": now,
-            "heartbeat_at": now,
-        },
+    stale = now - timedelta(seconds=stale_after_s)
+    running_free = and_(
+        Job.status == RUNNING, or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < stale)
     )
-    if not ok:
+    if stages:
+        running_free = or_(running_free, and_(Job.status == RUNNING, Job.stage.in_(stages)))
+    res = session.execute(
+        update(Job)
+        .where(Job.id == job_id, or_(Job.status == QUEUED, running_free))
+        .values(
+            status=RUNNING,
+            worker=worker[:200],
+            attempts=Job.attempts + (0 if stages else 1),
+            started_at=func.coalesce(Job.started_at, now),
+            heartbeat_at=now,
+            updated_at=now,
+        )
+        .execution_options(synchronize_session=False)
+    )
+    session.flush()
+    if res.rowcount != 1:
         return None
     job = session.get(Job, job_id)
     session.refresh(job)

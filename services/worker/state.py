@@ -16,12 +16,12 @@ import logging
 import os
 import socket
 import threading
-from datetime import timedelta
 
-from sqlalchemy import and_, func, or_, update
+from sqlalchemy import update
 
+from services import jobs
 from services.db import session_scope
-from services.models import FINAL_STATUSES, QUEUED, RUNNING, Job, utcnow
+from services.models import FINAL_STATUSES, RUNNING, Job, utcnow
 
 log = logging.getLogger("dancegraph.worker")
 
@@ -38,37 +38,14 @@ class JobCancelled(Exception):
 def claim(
     job_id: str, *, stale_after_s: float, stages: tuple[str, ...] | None = None
 ) -> Job | None:
-    """Take the lease of a job; returns the fresh row, or None when it is not ours to run.
-
-    ``stages``: when given, a ``running`` job whose stage is one of these is also claimable even
-    with a fresh heartbeat (the hand-over from the analysis queue to the FBX queue).
-    """
-    now = utcnow()
-    stale = now - timedelta(seconds=stale_after_s)
-    running_free = and_(
-        Job.status == RUNNING, or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < stale)
-    )
-    if stages:
-        running_free = or_(running_free, and_(Job.status == RUNNING, Job.stage.in_(stages)))
+    """Take the lease of a job for this process (``jobs.claim_job``); a detached copy of the
+    fresh row, or None when it is not ours to run."""
     with session_scope() as session:
-        res = session.execute(
-            update(Job)
-            .where(Job.id == job_id, or_(Job.status == QUEUED, running_free))
-            .values(
-                status=RUNNING,
-                worker=worker_name(),
-                attempts=Job.attempts + (0 if stages else 1),
-                started_at=func.coalesce(Job.started_at, now),
-                heartbeat_at=now,
-                updated_at=now,
-            )
-            .execution_options(synchronize_session=False)
+        job = jobs.claim_job(
+            session, job_id, worker_name(), stale_after_s=stale_after_s, stages=stages
         )
-        if res.rowcount != 1:
-            return None
-        job = session.get(Job, job_id)
-        session.refresh(job)
-        session.expunge(job)
+        if job is not None:
+            session.expunge(job)
         return job
 
 

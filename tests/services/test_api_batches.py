@@ -37,7 +37,7 @@ def test_batch_creates_one_job_per_song(api):
     # progress of the batch follows its jobs
     with session_scope(api.settings.database_url) as session:
         for j in batch["jobs"]:
-            jobs.claim_job(session, j["id"], "w")
+            jobs.claim_job(session, j["id"], "w", stale_after_s=600)
             jobs.set_status(session, j["id"], SUCCEEDED, result={"alternatives": [], "files": []})
     done = api.get(f"/v1/batches/{batch['id']}").json()
     assert done["status"] == "completed" and done["counts"] == {"succeeded": 3}

@@ -87,7 +87,7 @@ def test_cancel(api, song_wav):
     assert api.delete(f"/v1/jobs/{job['id']}").json()["status"] == "cancelled"  # idempotent
     # a worker that picks it up afterwards cannot revive it
     with session_scope(api.settings.database_url) as session:
-        assert jobs.claim_job(session, job["id"], "late-worker") is None
+        assert jobs.claim_job(session, job["id"], "late-worker", stale_after_s=600) is None
         assert not jobs.set_status(session, job["id"], SUCCEEDED)
     assert api.get(f"/v1/jobs/{job['id']}").json()["status"] == "cancelled"
 
@@ -95,7 +95,7 @@ def test_cancel(api, song_wav):
 def test_cancel_running_then_finished_job(api, song_wav):
     job = api.submit(song_wav, {}).json()
     with session_scope(api.settings.database_url) as session:
-        assert jobs.claim_job(session, job["id"], "w1").status == RUNNING
+        assert jobs.claim_job(session, job["id"], "w1", stale_after_s=600).status == RUNNING
         assert jobs.heartbeat(session, job["id"], stage="analysis", progress=30)
     got = api.get(f"/v1/jobs/{job['id']}").json()
     assert (got["status"], got["stage"], got["progress"], got["attempts"]) == (
@@ -142,7 +142,7 @@ def _finish(api, job_id: str, files: dict[str, bytes], alternatives=None) -> Non
         {"nodes": ["60_03:1", "60_03:2"], "cost": 1.5, "violations": []}
     ]
     with session_scope(api.settings.database_url) as session:
-        assert jobs.claim_job(session, job_id, "w")
+        assert jobs.claim_job(session, job_id, "w", stale_after_s=600)
         assert jobs.set_status(
             session,
             job_id,
@@ -205,7 +205,7 @@ def test_results_and_downloads(api, song_wav):
 def test_failed_job_shows_its_error(api, song_wav):
     job = api.submit(song_wav, {}).json()
     with session_scope(api.settings.database_url) as session:
-        jobs.claim_job(session, job["id"], "w")
+        jobs.claim_job(session, job["id"], "w", stale_after_s=600)
         jobs.fail_job(session, job["id"], "no_beat", "no usable beat in song.wav", field="audio")
     got = api.get(f"/v1/jobs/{job['id']}").json()
     assert got["status"] == "failed"

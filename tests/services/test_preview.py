@@ -43,7 +43,7 @@ def finish_with(api, job_id: str, out: Path) -> None:
         for a in timeline["alternatives"]
     ]
     with session_scope(api.settings.database_url) as session:
-        assert jobs.claim_job(session, job_id, "test-worker")
+        assert jobs.claim_job(session, job_id, "test-worker", stale_after_s=600)
         assert jobs.set_status(
             session, job_id, SUCCEEDED, result={"alternatives": alternatives, "files": files}
         )
