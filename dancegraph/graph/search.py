@@ -320,61 +320,72 @@ def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: S
     )
 
 
+def _cached(graph: MotionGraph, key, make):
+    """``make()`` computed once per loaded graph and ``key`` (a graph version never changes)."""
+    cache = graph.__dict__.setdefault("_cache", {})
+    if key not in cache:
+        cache[key] = make()
+    return cache[key]
+
+
 def _in_edges(
     graph: MotionGraph, threshold: float, indptr: np.ndarray, indices: np.ndarray, costs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The same edges by target (``in_ptr (N+1,)``, ``in_src (E,) int32``, ``in_cost (E,)``) for
     the DP's pull pass, cached on the graph per threshold."""
-    cache = graph.__dict__.setdefault("_cache", {})
-    key = ("in_edges", float(threshold))
-    if key not in cache:
+
+    def make():
         order = np.argsort(indices, kind="stable")
         in_ptr = np.zeros(graph.n_nodes + 1, dtype=np.int64)
         np.cumsum(np.bincount(indices, minlength=graph.n_nodes), out=in_ptr[1:])
         src = np.repeat(np.arange(graph.n_nodes, dtype=np.int32), np.diff(indptr))
-        cache[key] = (
+        return (
             _ro(in_ptr, np.int64),
             _ro(src[order], np.int32),
             _ro(costs[order], np.float32),
         )
-    return cache[key]
+
+    return _cached(graph, ("in_edges", float(threshold)), make)
 
 
 def _feature_rows(graph: MotionGraph) -> dict[str, np.ndarray]:
     """``out_feat`` and ``in_feat`` of ``_dp.Graph``: per node one row of exit (entry) features
     and style (cached on the graph)."""
-    cache = graph.__dict__.setdefault("_cache", {})
-    if "feature_rows" not in cache:
+
+    def make():
         style = np.asarray(graph.style, dtype=np.float32)
-        cache["feature_rows"] = {
+        return {
             side: _ro(np.concatenate([np.asarray(f, dtype=np.float32), style], axis=1), np.float32)
             for side, f in (("out_feat", graph.exit_pc), ("in_feat", graph.entry_pc))
         }
-    return cache["feature_rows"]
+
+    return _cached(graph, "feature_rows", make)
 
 
 def _motion_record(graph: MotionGraph) -> np.ndarray:
     """``(N, 8)`` per node: dx, dz, dyaw, cos dyaw, sin dyaw, radius, 0, 0 (``_dp.Graph.motion``:
     one cache line per node for the trajectory terms; cached on the graph)."""
-    cache = graph.__dict__.setdefault("_cache", {})
-    if "motion" not in cache:
+
+    def make():
         disp = np.asarray(graph.disp, dtype=np.float64)
         rec = np.zeros((graph.n_nodes, 8))
         rec[:, :3] = disp
         rec[:, 3] = np.cos(disp[:, 2])
         rec[:, 4] = np.sin(disp[:, 2])
         rec[:, 5] = graph.radius
-        cache["motion"] = _ro(rec, np.float64)
-    return cache["motion"]
+        return _ro(rec, np.float64)
+
+    return _cached(graph, "motion", make)
 
 
 def _style_sq(graph: MotionGraph) -> np.ndarray:
     """‖z_D‖² per node (cached on the graph)."""
-    cache = graph.__dict__.setdefault("_cache", {})
-    if "style_sq" not in cache:
+
+    def make():
         zd = np.asarray(graph.style, dtype=np.float32)
-        cache["style_sq"] = (zd * zd).sum(1)
-    return cache["style_sq"]
+        return (zd * zd).sum(1)
+
+    return _cached(graph, "style_sq", make)
 
 
 def bar_terms(
