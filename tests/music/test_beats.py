@@ -18,6 +18,7 @@ from dancegraph.music.beats import (
     beat_f_measure,
     mend_half_beat_slips,
     mend_swing_off_beats,
+    subdivision_strength,
     track_beats,
 )
 from dancegraph.music.decode import load_audio
@@ -107,6 +108,65 @@ def test_sections_tracked_on_the_off_beats_are_moved_back() -> None:
     assert any(w.startswith("beat_slip_mended") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.85
+
+
+def test_subdivision_strength_sees_what_sounds_between_the_beats() -> None:
+    """Onset pulses on the grid only read as no subdivision; eighths, swung eighths or
+    sixteenths between the beats read clearly above the threshold."""
+    fps, period, n = 50.0, 25, 2000  # 120 BPM at 50 fps
+    beats = np.arange(0, n - period, period) / fps
+
+    def envelope(*phases: float) -> np.ndarray:
+        env = np.zeros(n)
+        for ph in (0.0, *phases):
+            env[(np.arange(0, n - period, period) + round(ph * period)).astype(int)] = (
+                1.0 if ph == 0.0 else 0.5
+            )
+        return env
+
+    assert subdivision_strength(envelope(), beats) < 0.05
+    for sub in ((0.5,), (2 / 3,), (0.25, 0.5, 0.75)):
+        assert subdivision_strength(envelope(*sub), beats) > 0.3
+
+
+@pytest.mark.parametrize("seed,hard", [(1013, False), (2022, True)])
+def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool) -> None:
+    """79-81 BPM songs whose off-beat eighths both trackers count as beats (158-167 BPM):
+    nothing sounds between the tracked beats, so every other beat is kept — the half whose bars
+    find the stronger downbeats — and the tempo, beats and bars are the song's (downbeat F was
+    0.66 / 0.55 before)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, hard=hard)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beats_halved") for w in res.warnings)
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert res.meter == 4
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_meter_needs_a_clear_self_similarity_margin() -> None:
+    """A 4/4 song the network counts in 2 whose 3-beat lags are only slightly closer (0.11)
+    than its 4-beat lags stays in 4 (at the old margin of 0.05 it went to 3, downbeat F 0.28)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(4015)
+    res = track_beats(song.y, song.sr)
+    assert res.meter == 4
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_harmony_above_the_bass_finds_the_bar_under_misleading_accents() -> None:
+    """Hard 3/4 song, off-beat drums and a syncopated bass that anticipates the root: the
+    network's downbeat sits on beat 3. The chords' change (chroma above 200 Hz, so the bass's
+    early root does not count) puts the bars right (downbeat F was 0.00)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(3019, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert res.meter == 3
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
 
 
 def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
