@@ -42,7 +42,7 @@ network's downbeat activation out at moved beats: 24 hard songs (seeds 2000-2023
 swing forced) 0.839 -> 0.925; normal songs unchanged (seeds 1000-1011 0.981, held-out
 4000-4011 0.904). Then (2026-11-30) chroma above the bass for the harmonic change, :data:`HARMONY_WEIGHT` 1.5,
 :data:`METER_MARGIN` 0.15 and the halving of grids at twice the tactus
-(:func:`group_half_beats`), downbeat F before -> after on three seed sets (``--seed-base``):
+(:mod:`dancegraph.music.beats`), downbeat F before -> after on three seed sets (``--seed-base``):
 hard 2000-2023 0.832 -> 0.842, 3000-3029 0.787 -> 0.871, 6000-6059 0.670 -> 0.758; normal
 1000-1029 0.971 -> 0.982, 4000-4029 0.920 -> 0.943, 7000-7039 0.950 -> 0.965; meter 95-97 % ->
 100 % on every set. What is left are beat-level errors no bar grouping can mend: straight
@@ -63,7 +63,6 @@ __all__ = [
     "downbeat_evidence",
     "grid_glitches",
     "group_beats",
-    "group_half_beats",
     "harmonic_change",
     "meter_distances",
     "phase_viterbi",
@@ -73,6 +72,9 @@ __all__ = [
 #: mean lag-distance difference (feature units) by which 3 or 4 must win to override the network
 #: (generated songs: right overrides won by 0.23-0.59; at 0.05 a 4/4 song went to 3 by 0.11)
 METER_MARGIN = 0.15
+#: the same for a halved grid (no network prior; 3 must win against 4 by this): generated songs
+#: halved from twice their tempo, 3/4 by 0.13 and 0.22, 4/4 within 0.04 or for 4
+HALVED_METER_MARGIN = 0.075
 #: weight of the harmonic change against the network's downbeat logit (both z-scored): the
 #: network follows kicks and bass accents, which the hard cases put off the downbeat
 HARMONY_WEIGHT = 1.5
@@ -255,78 +257,35 @@ def group_beats(
     bass_onset: np.ndarray,
     chroma: np.ndarray,
     tracked: np.ndarray | None = None,
+    meter_prior: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Re-decide the meter and bar phase of a decoded beat grid (see the module docstring).
 
     ``positions``/``meters`` (K,): the decoder's; ``act`` (T, 2) BeatNet's beat/downbeat
     activations; ``frames`` (K,) the beats' frame indices; ``onset_env``, ``bass_onset`` (T,)
     and ``chroma`` (12, T) at the same 50 fps; ``tracked`` (K,) bool: the beats the network
-    tracked itself (not moved by a mend; default all). Returns (positions, meters, warnings): warnings
-    ``meter_regrouped`` when the meter differs from the decoder's, ``downbeat_rephased`` when
-    the downbeats differ on more than a tenth of the beats.
+    tracked itself (not moved by a mend; default all); ``meter_prior=False`` when the decoder
+    counted other beats (a grid at twice the tactus, every other beat kept): its meter is then
+    no prior; 4 unless 3-beat bars repeat better by :data:`HALVED_METER_MARGIN`. Returns
+    (positions, meters, warnings): warnings ``meter_regrouped`` when the meter differs from the
+    decoder's, ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats.
     """
-    positions, meters, notes, _ = _group(
-        positions, meters, act, frames, onset_env, bass_onset, chroma, tracked
-    )
-    return positions, meters, notes
-
-
-def group_half_beats(
-    positions: np.ndarray,
-    meters: np.ndarray,
-    act: np.ndarray,
-    frames: np.ndarray,
-    onset_env: np.ndarray,
-    bass_onset: np.ndarray,
-    chroma: np.ndarray,
-    tracked: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """Group a beat grid tracked at twice the tactus (every other beat is an off-beat eighth).
-
-    Arguments as :func:`group_beats`. Each half of the grid (the even and the odd beats) is
-    grouped by :func:`group_beats`' rules; the half whose chosen downbeats carry the stronger
-    downbeat evidence (:func:`downbeat_evidence`, mean at position 1) is kept. Returns (keep (K,)
-    bool: the beats of the kept half, its positions (K',), meters (K',), warnings).
-    """
-    own = np.ones(len(positions), dtype=bool) if tracked is None else np.asarray(tracked, bool)
-    best = None
-    for parity in (0, 1):
-        sel = slice(parity, None, 2)
-        pos, met, notes, strength = _group(
-            positions[sel], meters[sel], act, frames[sel], onset_env, bass_onset, chroma, own[sel]
-        )
-        if best is None or strength > best[0]:
-            best = (strength, parity, pos, met, notes)
-    _, parity, pos, met, notes = best
-    keep = np.zeros(len(positions), dtype=bool)
-    keep[parity::2] = True
-    return keep, pos, met, notes
-
-
-def _group(
-    positions: np.ndarray,
-    meters: np.ndarray,
-    act: np.ndarray,
-    frames: np.ndarray,
-    onset_env: np.ndarray,
-    bass_onset: np.ndarray,
-    chroma: np.ndarray,
-    tracked: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, list[str], float]:
-    """:func:`group_beats`, plus the mean downbeat evidence at the chosen downbeats."""
     positions = np.asarray(positions, dtype=np.int64)
     meters = np.asarray(meters, dtype=np.int64)
     n = len(positions)
     if n < 16:
-        return positions, meters, [], -np.inf
+        return positions, meters, []
     values, counts = np.unique(meters, return_counts=True)
     decoded = int(values[np.argmax(counts)])
     dist = meter_distances(beat_features(onset_env, bass_onset, chroma, frames))
+    if not meter_prior:  # the decoder counted eighths: 4, the commoner meter, is the prior
+        decoded = 4
+    margin = METER_MARGIN if meter_prior else HALVED_METER_MARGIN
     meter = decoded
     if np.isfinite(dist[3]) and np.isfinite(dist[4]):
-        if decoded in (2, 4) and dist[3] < dist[4] - METER_MARGIN:
+        if decoded in (2, 4) and dist[3] < dist[4] - margin:
             meter = 3
-        elif decoded == 3 and dist[4] < dist[3] - METER_MARGIN:
+        elif decoded == 3 and dist[4] < dist[3] - margin:
             meter = 4
     e = downbeat_evidence(act, frames, chroma, tracked)
     new = phase_viterbi(e, 4 if meter == 2 else meter, restart_costs(frames))
@@ -345,4 +304,4 @@ def _group(
     changed = int(np.sum((new == 1) != (positions == 1)))
     if meter == decoded and changed > 0.1 * n:
         notes.append(f"downbeat_rephased: the downbeat moved on {changed} of {n} beats")
-    return new, np.full(n, meter, dtype=np.int64), notes, float(e[new == 1].mean())
+    return new, np.full(n, meter, dtype=np.int64), notes
