@@ -40,18 +40,21 @@ restarts at grid glitches, the swing mend of :mod:`dancegraph.music.beats` and l
 network's downbeat activation out at moved beats: 24 hard songs (seeds 2000-2023) 0.810 ->
 0.832; held-out hard seeds 3000-3015 0.868 -> 0.928; 29 swung hard songs (seeds 5000-5029,
 swing forced) 0.839 -> 0.925; normal songs unchanged (seeds 1000-1011 0.981, held-out
-4000-4011 0.904). Then (2026-11-30) chroma above the bass for the harmonic change, :data:`HARMONY_WEIGHT` 1.5,
-:data:`METER_MARGIN` 0.15 and the halving of grids at twice the tactus
-(:mod:`dancegraph.music.beats`), downbeat F before -> after on three seed sets (``--seed-base``):
-hard 2000-2023 0.832 -> 0.842, 3000-3029 0.787 -> 0.871, 6000-6059 0.670 -> 0.758; normal
-1000-1029 0.971 -> 0.982, 4000-4029 0.920 -> 0.943, 7000-7039 0.950 -> 0.965; meter 95-97 % ->
-100 % on every set. What is left are beat-level errors no bar grouping can mend: straight
-beats on the off-beats where the other tracker does not agree either (no onset, bass or band
-evidence tells beat from off-beat in those songs: measured, not adopted), a halved grid whose
-bars start on the wrong beat, and the downbeat under an anticipated bass root or an off-beat
-kick where the chords change on two beats of the bar alike.
-``metricon`` 0.1.0 (MIT) decoding the same activations gets the hard
-downbeats no better than our own decoder (F 0.48 on 24 hard songs): it was not adopted.
+4000-4011 0.904).
+
+Then (2026-11-30) chroma above the bass for the harmonic change, :data:`HARMONY_WEIGHT` 1.5,
+:data:`METER_MARGIN` 0.15, and in :mod:`dancegraph.music.beats` the halving of grids at twice
+the tactus and the off-beat mends led by where the notes start (``off_beat_gain``). Downbeat F
+before -> after on four seed sets (``--seed-base``; 154 hard and 120 normal songs): hard
+2000-2023 0.832 -> 0.864, 3000-3029 0.787 -> 0.886, 6000-6059 0.670 -> 0.855, 8000-8039
+(fresh, after only) 0.828; all 154 hard songs 0.855; normal 1000-1029 0.971 -> 0.982,
+4000-4029 0.920 -> 0.943, 7000-7039 0.950 -> 0.965, 9000-9019 0.977; meter 95-97 % -> 100 %
+on every set. What is left: sections on the off-beats whose notes do not clearly start after
+the beats, the downbeat under an anticipated bass root or an off-beat kick where the chords
+change on two beats of the bar alike, a halved grid whose bars start on the wrong beat, and
+160-180 BPM songs tracked at half their tempo (no cue found that would not also double
+80-95 BPM songs with sixteenths). ``metricon`` 0.1.0 (MIT) decoding the same activations gets
+the hard downbeats no better than our own decoder (F 0.48 on 24 hard songs): it was not adopted.
 """
 
 from __future__ import annotations

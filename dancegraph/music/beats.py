@@ -300,9 +300,11 @@ def mend_half_beat_slips(
     ``2 * SLIP['window']`` beats with the same tempo before and after. The beats on one side of
     the slips — the side whose notes start more after its beats than the other's (mean
     ``gain`` (K,), :func:`off_beat_gain`), or without ``gain`` the side that holds fewer beats —
-    are moved by half an interval, section by section, where
-    an independent tracker's beats ``reference`` (s) agree with the moved beats clearly better
-    (F-measure at 70 ms, by ``SLIP['agree_margin']``) than with the tracked ones. At the section
+    are moved by half an interval, section by section, where an independent tracker's beats
+    ``reference`` (s) agree with the moved beats clearly better (F-measure at 70 ms, by
+    ``SLIP['agree_margin']``) than with the tracked ones, or where the section's mean ``gain``
+    alone is as clear as for a whole grid on the off-beats (``OFF_BEAT['min_score']``, see
+    :func:`mend_off_beat_grid`; the other tracker often follows the same off-beats). At the section
     borders a beat is dropped or inserted so that every interval stays within 0.75-1.25 of the
     local one. ``times`` (K,) s. Returns (beat times (K',), number of beats moved).
     """
@@ -346,7 +348,8 @@ def mend_half_beat_slips(
         shifted = t[seg] + 0.5 * nxt[seg]
         lo, hi = t[seg[0]] - 0.05, shifted[-1] + 0.05
         ref = reference[(reference >= lo) & (reference <= hi)]
-        if beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + SLIP["agree_margin"]:
+        agree = beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + SLIP["agree_margin"]
+        if agree or (gain is not None and gain[seg].mean() > OFF_BEAT["min_score"]):
             moved[seg] = shifted
             n_moved += len(seg)
     if not n_moved:

@@ -196,6 +196,20 @@ def test_off_beat_grid_moves_only_when_the_notes_start_half_a_beat_later() -> No
     np.testing.assert_array_equal(kept, off)
 
 
+def test_off_beat_sections_move_by_the_notes_when_both_trackers_follow_the_bass() -> None:
+    """Hard 4/4 song without drums, syncopated bass, anticipated chords: BeatNet is on the
+    off-beats except in one section and librosa on the off-beats throughout. The notes start
+    half a beat after the off-beat sections' beats, clearly enough to move them without the
+    other tracker's agreement (beat F was 0.12)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(6030, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_slip_mended") for w in res.warnings)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.85
+
+
 def test_hard_song_on_the_off_beats_all_song_long_is_moved_onto_the_beat() -> None:
     """Hard 4/4 song without drums in places and a syncopated bass: BeatNet follows the bass on
     the off-beats from start to end (beat F 0.00; no slip to mend, librosa agrees). The chords
@@ -245,6 +259,12 @@ def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
     by_notes, moved = mend_half_beat_slips(tracked, truth, gain)
     assert moved > 60
     assert beat_f_measure(truth, by_notes) > 0.9 > 0.5 > beat_f_measure(truth, by_size)
+    # the other tracker follows the same off-beats: a clear gain moves the sections on its own,
+    # a faint one does not
+    alone, moved = mend_half_beat_slips(tracked, tracked, gain)
+    assert moved > 60 and beat_f_measure(truth, alone) > 0.9
+    kept, moved = mend_half_beat_slips(tracked, tracked, 0.5 * gain)
+    assert moved == 0 and np.array_equal(kept, tracked)
 
 
 def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
