@@ -289,7 +289,7 @@ def mend_off_beat_grid(
 
 
 def mend_half_beat_slips(
-    times: np.ndarray, reference: np.ndarray, gain: np.ndarray | None = None
+    times: np.ndarray, reference: np.ndarray, gain: np.ndarray
 ) -> tuple[np.ndarray, int]:
     """Put back on the beat the sections a tracker put on the off-beats.
 
@@ -299,8 +299,7 @@ def mend_half_beat_slips(
     (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over
     ``2 * SLIP['window']`` beats with the same tempo before and after. The beats on one side of
     the slips — the side whose notes start more after its beats than the other's (mean
-    ``gain`` (K,), :func:`off_beat_gain`), or without ``gain`` the side that holds fewer beats —
-    are moved by half an interval, section by section, where an independent tracker's beats
+    ``gain`` (K,), :func:`off_beat_gain`) — are moved by half an interval, section by section, where an independent tracker's beats
     ``reference`` (s) agree with the moved beats clearly better (F-measure at 70 ms, by
     ``SLIP['agree_margin']``) than with the tracked ones, or where the section's mean ``gain``
     alone is as clear as for a whole grid on the off-beats (``OFF_BEAT['min_score']``, see
@@ -336,10 +335,8 @@ def mend_half_beat_slips(
     off = offset > 0.25
     if not off.any():
         return t, 0
-    if gain is None:
-        to_move = off if off.mean() < 0.5 else ~off
-    else:  # the side on the off-beats: its notes start half a beat after its beats
-        to_move = off if gain[off].mean() > gain[~off].mean() else ~off
+    # the side on the off-beats: its notes start half a beat after its beats
+    to_move = off if gain[off].mean() > gain[~off].mean() else ~off
     nxt = np.r_[ibi, ibi[-1]]
     idx = np.flatnonzero(to_move)
     moved = t.copy()
@@ -349,7 +346,7 @@ def mend_half_beat_slips(
         lo, hi = t[seg[0]] - 0.05, shifted[-1] + 0.05
         ref = reference[(reference >= lo) & (reference <= hi)]
         agree = beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + SLIP["agree_margin"]
-        if agree or (gain is not None and gain[seg].mean() > OFF_BEAT["min_score"]):
+        if agree or gain[seg].mean() > OFF_BEAT["min_score"]:
             moved[seg] = shifted
             n_moved += len(seg)
     if not n_moved:
@@ -564,13 +561,14 @@ def track_beats(
                     )
                 times, off_score = mend_off_beat_grid(times, onset_env, spec.chroma)
                 evidence["off_beat_score"] = off_score
-                if off_score > OFF_BEAT["min_score"]:
+                shifted = off_score > OFF_BEAT["min_score"]
+                if shifted:
                     warnings.append(
                         f"beat_phase_shifted: the whole grid sat on the off-beats (pitched onsets "
                         f"and onset strength prefer the beats half a beat later, score "
                         f"{off_score:.2f}); all moved half a beat"
                     )
-                if moved or off_score > OFF_BEAT["min_score"]:
+                if moved or shifted:
                     # the decoder's grouping of the nearest original beat, as the reference
                     near = np.abs(times[:, None] - dec.times[None, :]).argmin(axis=1)
                     positions, meters = positions[near], meters[near]

@@ -220,22 +220,24 @@ def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
     # the decoder slides into and out of it over a few beats (its tempo changes only slowly)
     tracked[36:40] += np.linspace(0.05, 0.2, 4)
     tracked[72:76] += np.linspace(0.2, 0.05, 4)
-    mended, moved = mend_half_beat_slips(tracked, truth)
+    # the notes start half a beat after the section's beats, faintly (below the bar at which
+    # the gain alone moves a section)
+    gain = np.where(np.abs(tracked - np.round(tracked / period) * period) < 0.05, -0.5, 0.5)
+    mended, moved = mend_half_beat_slips(tracked, truth, gain)
     assert moved > 20
     assert beat_f_measure(truth, mended) > 0.9 > 0.75 > beat_f_measure(truth, tracked)
     inner = mended[(mended > truth[41] - 0.1) & (mended < truth[70] + 0.1)]
     assert beat_f_measure(truth[41:71], inner) == 1.0  # the section itself is on the beat
     assert np.all(np.abs(np.diff(mended) / period - 1) < 0.3)
-    same, moved = mend_half_beat_slips(tracked, tracked)  # the other tracker agrees: kept
+    same, moved = mend_half_beat_slips(tracked, tracked, gain)  # the other tracker agrees: kept
     assert moved == 0 and np.array_equal(same, tracked)
-    steady, moved = mend_half_beat_slips(truth, truth[::2])
+    steady, moved = mend_half_beat_slips(truth, truth[::2], np.zeros(len(truth)))
     assert moved == 0 and np.array_equal(steady, truth)
 
 
 def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
-    """Most of the song on the off-beats, one section on the beat: by default the smaller side
-    (the right one) would move; with the per-beat off-beat gain (notes start half a beat after
-    the off-beat side's beats, on the on-beat side's beats) the off-beat side moves instead."""
+    """Most of the song on the off-beats, one section on the beat: the side that moves is the
+    one the notes start half a beat after (the per-beat off-beat gain), not the smaller one."""
     period = 0.5
     truth = np.arange(0.0, 60.0, period)
     tracked = truth + period / 2  # on the off-beats ...
@@ -244,10 +246,9 @@ def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
     tracked[72:76] -= np.linspace(0.2, 0.05, 4)
     on_beat = np.abs(tracked - np.round(tracked / period) * period) < 0.05
     gain = np.where(on_beat, -1.0, 1.0)
-    by_size, _ = mend_half_beat_slips(tracked, truth)
     by_notes, moved = mend_half_beat_slips(tracked, truth, gain)
     assert moved > 60
-    assert beat_f_measure(truth, by_notes) > 0.9 > 0.5 > beat_f_measure(truth, by_size)
+    assert beat_f_measure(truth, by_notes) > 0.9 > 0.5 > beat_f_measure(truth, tracked)
     # the other tracker follows the same off-beats: a clear gain moves the sections on its own,
     # a faint one does not
     alone, moved = mend_half_beat_slips(tracked, tracked, gain)
