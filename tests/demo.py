@@ -30,3 +30,12 @@ def demo_song(root: Path, form: tuple[str, ...] = ("A", "B", "A")) -> tuple[Path
     )
     wav, _ = write_song(song, root, "song")
     return wav, song
+
+
+def demo_cli(command: str, audio: Path, store: ObjectStore, out: Path, *options: str) -> int:
+    """Run ``dancegraph COMMAND AUDIO --dataset demo --out OUT [OPTIONS] --store STORE`` in this
+    process; its exit code."""
+    from dancegraph.cli import main
+
+    argv = [command, str(audio), "--dataset", "demo", "--out", str(out), *options]
+    return main([*argv, "--store", str(store.root)])

@@ -18,7 +18,7 @@ from dancegraph.graph.artifact import load_current
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.dataset import load_dataset
 from dancegraph.motion.fbx import fbx_available
-from tests.demo import demo_song, demo_store
+from tests.demo import demo_cli, demo_song, demo_store
 
 
 @pytest.fixture(scope="module")
@@ -35,22 +35,7 @@ def test_synthesize_writes_dance_files(setup, capsys):
     spec = root / "spec.json"
     spec.write_text(json.dumps({"seed": 1, "output": {"formats": formats, "fps": 30}}))
     out = root / "out"
-    rc = cli_main(
-        [
-            "synthesize",
-            str(wav),
-            "--dataset",
-            "demo",
-            "--spec",
-            str(spec),
-            "--out",
-            str(out),
-            "--alternatives",
-            "2",
-            "--store",
-            str(store.root),
-        ]
-    )
+    rc = demo_cli("synthesize", wav, store, out, "--spec", str(spec), "--alternatives", "2")
     assert rc == 0, capsys.readouterr().err
     printed = json.loads(capsys.readouterr().out)
     assert len(printed["alternatives"]) == 2 and printed["graph"]["name"] == "demo"
@@ -96,20 +81,6 @@ def test_synthesize_errors_are_clear(setup, capsys, tmp_path: Path):
     assert "absent.json" in capsys.readouterr().err
     junk = tmp_path / "junk.wav"
     junk.write_bytes(b"not audio at all" * 100)
-    assert (
-        cli_main(
-            [
-                "synthesize",
-                str(junk),
-                "--dataset",
-                "demo",
-                "--out",
-                str(tmp_path / "o2"),
-                "--store",
-                str(store.root),
-            ]
-        )
-        == 2
-    )
+    assert demo_cli("synthesize", junk, store, tmp_path / "o2") == 2
     assert "audio_" in capsys.readouterr().err
     assert not (tmp_path / "o").exists() and not (tmp_path / "o2").exists()

@@ -15,7 +15,7 @@ from dancegraph.cli import main as cli_main
 from dancegraph.eval import ROWS
 from dancegraph.eval.harness import SCALARS, EvalError, evaluate
 from dancegraph.spec import Spec
-from tests.demo import demo_song, demo_store
+from tests.demo import demo_cli, demo_song, demo_store
 
 
 @pytest.fixture(scope="module")
@@ -44,10 +44,7 @@ def _images(html: str) -> list[str]:
 def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     root, store, wav, spec = setup
     out = root / "eval"
-    rc = cli_main(
-        ["eval", str(wav), "--dataset", "demo", "--out", str(out), "--spec", str(spec)]
-        + ["--store", str(store.root)]
-    )
+    rc = demo_cli("eval", wav, store, out, "--spec", str(spec))
     assert rc == 0, capsys.readouterr().err
     metrics = json.loads((out / "metrics.json").read_text())
     assert list(metrics["rows"]) == list(ROWS)
@@ -77,10 +74,7 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
 def test_eval_result_scores_a_synthesize_folder(setup, capsys):
     root, store, wav, spec = setup
     out = root / "synth"
-    rc = cli_main(
-        ["synthesize", str(wav), "--dataset", "demo", "--out", str(out), "--spec", str(spec)]
-        + ["--store", str(store.root)]
-    )
+    rc = demo_cli("synthesize", wav, store, out, "--spec", str(spec))
     assert rc == 0, capsys.readouterr().err
     capsys.readouterr()
     rc = cli_main(["eval", "--result", str(out), "--store", str(store.root)])

@@ -14,8 +14,7 @@ def synthesized(tmp_path_factory) -> Path:
     """The folder holding ``song.wav`` and the synthesize output ``out/`` (timeline, 2 BVH)."""
     if "root" in _made:
         return _made["root"]
-    from dancegraph.cli import main as cli_main
-    from tests.demo import demo_song, demo_store
+    from tests.demo import demo_cli, demo_song, demo_store
 
     root = tmp_path_factory.mktemp("preview")
     store = demo_store(root)
@@ -30,17 +29,8 @@ def synthesized(tmp_path_factory) -> Path:
             }
         )
     )
-    argv = [
-        "synthesize",
-        str(wav),
-        "--dataset",
-        "demo",
-        "--spec",
-        str(spec),
-        "--out",
-        str(root / "out"),
-    ]
-    assert cli_main([*argv, "--alternatives", "2", "--store", str(store.root)]) == 0
+    argv = ("--spec", str(spec), "--alternatives", "2")
+    assert demo_cli("synthesize", wav, store, root / "out", *argv) == 0
     _made["root"] = root
     return root
 
