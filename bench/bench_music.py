@@ -3,9 +3,10 @@ for the CC recordings in ../shared/datasets/music/cc.
 
 Usage: ``python bench/bench_music.py [--songs N] [--hard N] [--seed-base S S] [--no-cc]``
 (default: 24 normal songs from seed 1000, 40 hard from seed 2000, about 3 minutes). The
-analysis' thresholds were measured on seeds 1000-1029, 2000-2023, 3000-3029, 4000-4029,
-6000-6059 and 7000-7039 (``--seed-base NORMAL HARD``); hard 2024-2039 and the sets
-``--seed-base 9000 8000`` were run only after them, as a fresh check.
+analysis' thresholds were measured on seeds 1000-1029, 2000-2039, 3000-3029, 4000-4029,
+6000-6059, 7000-7039, 8000-8039 and (the whole-grid off-beat threshold) 13000-13029
+(``--seed-base NORMAL HARD``); normal 9000-9019 and hard 12000-12039 were run only after
+them, as a fresh check.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;

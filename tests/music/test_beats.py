@@ -15,6 +15,7 @@ import pytest
 from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
 from dancegraph.music.beats import (
+    SLIP,
     beat_f_measure,
     mend_half_beat_slips,
     mend_off_beat_grid,
@@ -222,7 +223,8 @@ def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
     tracked[72:76] += np.linspace(0.2, 0.05, 4)
     # the notes start half a beat after the section's beats, faintly (below the bar at which
     # the gain alone moves a section)
-    gain = np.where(np.abs(tracked - np.round(tracked / period) * period) < 0.05, -0.5, 0.5)
+    faint = 0.5 * SLIP["min_gain"]
+    gain = np.where(np.abs(tracked - np.round(tracked / period) * period) < 0.05, -faint, faint)
     mended, moved = mend_half_beat_slips(tracked, truth, gain)
     assert moved > 20
     assert beat_f_measure(truth, mended) > 0.9 > 0.75 > beat_f_measure(truth, tracked)
@@ -231,6 +233,9 @@ def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
     assert np.all(np.abs(np.diff(mended) / period - 1) < 0.3)
     same, moved = mend_half_beat_slips(tracked, tracked, gain)  # the other tracker agrees: kept
     assert moved == 0 and np.array_equal(same, tracked)
+    # a tracker at half the tempo matches every other beat of either grid: it is no vote
+    half, moved = mend_half_beat_slips(tracked, truth[1::2], gain)
+    assert moved == 0 and np.array_equal(half, tracked)
     steady, moved = mend_half_beat_slips(truth, truth[::2], np.zeros(len(truth)))
     assert moved == 0 and np.array_equal(steady, truth)
 
@@ -253,7 +258,7 @@ def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
     # a faint one does not
     alone, moved = mend_half_beat_slips(tracked, tracked, gain)
     assert moved > 60 and beat_f_measure(truth, alone) > 0.9
-    kept, moved = mend_half_beat_slips(tracked, tracked, 0.5 * gain)
+    kept, moved = mend_half_beat_slips(tracked, tracked, 0.5 * SLIP["min_gain"] * gain)
     assert moved == 0 and np.array_equal(kept, tracked)
 
 
