@@ -115,6 +115,34 @@ def test_sections_tracked_on_the_off_beats_are_moved_back(seed: int) -> None:
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.85
 
 
+@pytest.mark.parametrize(
+    ("seed", "warned"),
+    [
+        # its intro's beats sat on the chord stabs of the off-beats; mean gain 0.65, below a
+        # whole grid's bar but above a slip-bounded section's (beat F was 0.78)
+        (7005, True),
+        # librosa at half the tempo matched the half-shifted beats of a correct section and
+        # moved 138 of them off the beat (beat F was 0.38): at another tempo it is no vote
+        (13001, False),
+        # a 142 BPM rock song whose grid on the beat scores 0.77 off-beat gain: the whole grid
+        # moved to the off-beats (beat F was 0.00)
+        (13026, False),
+    ],
+)
+def test_normal_songs_keep_or_regain_their_beat_phase(seed: int, warned: bool) -> None:
+    """Normal generated songs where the off-beat mends used to go wrong, fixed by the slip
+    section's own threshold, the tempo check on the other tracker's vote and the whole-grid
+    threshold (``beats.SLIP``, ``beats.OFF_BEAT``)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed)
+    res = track_beats(song.y, song.sr)
+    assert not any(w.startswith("beat_phase_shifted") for w in res.warnings)
+    assert any(w.startswith("beat_slip_mended") for w in res.warnings) == warned
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
 def test_subdivision_strength_sees_what_sounds_between_the_beats() -> None:
     """Onset pulses on the grid only read as no subdivision; eighths, swung eighths or
     sixteenths between the beats read clearly above the threshold."""
