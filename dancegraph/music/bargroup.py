@@ -271,7 +271,8 @@ def group_beats(
     counted other beats (a grid at twice the tactus, every other beat kept): its meter is then
     no prior; 4 unless 3-beat bars repeat better by :data:`HALVED_METER_MARGIN`. Returns
     (positions, meters, warnings): warnings ``meter_regrouped`` when the meter differs from the
-    decoder's, ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats.
+    decoder's, ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats
+    (not with ``meter_prior=False``: the decoder's downbeats were eighths, not these beats).
     """
     positions = np.asarray(positions, dtype=np.int64)
     meters = np.asarray(meters, dtype=np.int64)
@@ -305,6 +306,6 @@ def group_beats(
             f"(bar-length self-similarity: 3 beats {dist[3]:.2f}, 4 beats {dist[4]:.2f})"
         )
     changed = int(np.sum((new == 1) != (positions == 1)))
-    if meter == decoded and changed > 0.1 * n:
+    if meter_prior and meter == decoded and changed > 0.1 * n:
         notes.append(f"downbeat_rephased: the downbeat moved on {changed} of {n} beats")
     return new, np.full(n, meter, dtype=np.int64), notes

@@ -173,6 +173,8 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool) -> None:
     song = generate_song(seed, hard=hard)
     res = track_beats(song.y, song.sr)
     assert any(w.startswith("beats_halved") for w in res.warnings)
+    # the decoder's downbeats were among the eighths: moving off them is no news to report
+    assert not any(w.startswith("downbeat_rephased") for w in res.warnings)
     assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
     assert res.meter == song.truth["meter"]
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
