@@ -125,6 +125,8 @@ SLIP = {
     "same_level": (0.8, 1.25),  # its median interval / the section's, to count as a vote
     "min_gain": 0.2,  # or the section's mean off-beat gain (a slip bounds it: less than a grid)
     "side_margin": 0.2,  # ... where the two sides' mean gains differ by more than this
+    "edge_beats": 12,  # one slip: an intro/outro of this many beats or more ...
+    "edge_share": 0.25,  # ... and at most this share of the beats moves (the body sets the pulse)
 }
 
 
@@ -314,9 +316,16 @@ def mend_half_beat_slips(
     170 hard generated songs 0.2 moved 1524 beats right and 125 wrong, where the whole-grid
     threshold (then 0.75) moved 1165 right and 52 wrong and left 1450 on the off-beats,
     against 1091; the side margin (on 210 hard songs) halves the wrong moves (132 -> 68 beats)
-    and keeps every right one. At the section borders a beat is dropped or
-    inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
-    Returns (beat times (K',), number of beats moved).
+    and keeps every right one. With one slip in the song, the shorter side — an intro or outro
+    of ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
+    gain clearly says the body is the side off the beat: the body of a song sets its pulse, and
+    sparse intros and outros (chord stabs on the off-beats, no drums) are where the trackers go
+    astray. On 360 generated songs it set 15 intros/outros right (downbeat F +0.03-0.12 each),
+    moved one outro onto a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
+    Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
+    effects on a correct grid, 3 real. At the section borders a beat is dropped or inserted so
+    that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s. Returns
+    (beat times (K',), number of beats moved).
     """
     from scipy.ndimage import median_filter
 
@@ -349,6 +358,15 @@ def mend_half_beat_slips(
     # the side on the off-beats: its notes start half a beat after its beats
     to_move = off if gain[off].mean() > gain[~off].mean() else ~off
     clear = abs(gain[off].mean() - gain[~off].mean()) > SLIP["side_margin"]
+    # one slip: the two sides are the song's start and end; a short one is an intro or outro
+    short = off if off.sum() <= len(off) / 2 else ~off
+    edge = (
+        np.count_nonzero(np.diff(off)) == 1
+        and SLIP["edge_beats"] <= short.sum() <= SLIP["edge_share"] * len(t)
+        and not (clear and not np.array_equal(to_move, short))
+    )
+    if edge:
+        to_move = short
     nxt = np.r_[ibi, ibi[-1]]
     idx = np.flatnonzero(to_move)
     moved = t.copy()
@@ -362,7 +380,7 @@ def mend_half_beat_slips(
             SLIP["same_level"][0] <= level <= SLIP["same_level"][1]
             and beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + SLIP["agree_margin"]
         )
-        if agree or (clear and gain[seg].mean() > SLIP["min_gain"]):
+        if edge or agree or (clear and gain[seg].mean() > SLIP["min_gain"]):
             moved[seg] = shifted
             n_moved += len(seg)
     if not n_moved:

@@ -127,6 +127,9 @@ def test_sections_tracked_on_the_off_beats_are_moved_back(seed: int) -> None:
         # a 142 BPM rock song whose grid on the beat scores 0.77 off-beat gain: the whole grid
         # moved to the off-beats (beat F was 0.00)
         (13026, False),
+        # its drumless intro (chord stabs on the off-beats) was tracked on the off-beats, one
+        # slip away from the rest of the song, and no cue said so clearly (beat F was 0.90)
+        (1007, True),
     ],
 )
 def test_normal_songs_keep_or_regain_their_beat_phase(seed: int, warned: bool) -> None:
@@ -295,6 +298,24 @@ def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
     unclear = np.where(on_beat, 0.4, 0.5)
     kept, moved = mend_half_beat_slips(tracked, tracked, unclear)
     assert moved == 0 and np.array_equal(kept, tracked)
+
+
+def test_mend_half_beat_slips_moves_an_intro_one_slip_from_the_body() -> None:
+    """One slip, near the start: the intro is moved onto the body's pulse even when neither the
+    notes nor the other tracker say which side is off; a shorter start (two bars) stays."""
+    period = 0.5
+    truth = np.arange(0.0, 60.0, period)
+    no_cue = np.zeros(len(truth))
+    for n_intro, moves in ((16, True), (8, False)):
+        tracked = truth.copy()
+        tracked[:n_intro] += period / 2
+        tracked[n_intro : n_intro + 4] += np.linspace(0.2, 0.05, 4)
+        mended, moved = mend_half_beat_slips(tracked, tracked, no_cue)
+        if moves:  # all but the beats of the decoder's slide back
+            assert moved >= n_intro - 2
+            assert beat_f_measure(truth, mended) > 0.95 > 0.85 > beat_f_measure(truth, tracked)
+        else:
+            assert moved == 0 and np.array_equal(mended, tracked)
 
 
 def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
