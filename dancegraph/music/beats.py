@@ -323,7 +323,7 @@ def mend_half_beat_slips(
     astray. On 360 generated songs it set 15 intros/outros right (downbeat F +0.03-0.12 each),
     moved one outro onto a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
     Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
-    effects on a correct grid, 3 real. At the section borders a beat is dropped or inserted so
+    effects on a correct grid, 3 real, 3 mixed. At the section borders a beat is dropped or inserted so
     that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s. Returns
     (beat times (K',), number of beats moved).
     """
