@@ -16,7 +16,7 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     warning ``beat_phase_shifted``).
   - twice the tactus: when nothing sounds between the tracked beats (:func:`subdivision_strength`)
     they are the music's eighths; every other beat is kept, the half the notes start on (the
-    preference of :func:`mend_off_beat_grid`), and the meter is regrouped without the decoder's
+    preference of :func:`off_beat_score`), and the meter is regrouped without the decoder's
     count of eighths as a prior (warning ``beats_halved``).
   - bar grouping (:mod:`dancegraph.music.bargroup`): the meter from bar-length self-similarity
     and the bar phase from a beat-level bar-pointer model on BeatNet's downbeat evidence plus
@@ -65,6 +65,7 @@ __all__ = [
     "mend_off_beat_grid",
     "mend_swing_off_beats",
     "off_beat_gain",
+    "off_beat_score",
     "subdivision_strength",
     "track_beats",
     "warm_up",
@@ -220,8 +221,14 @@ def mend_swing_off_beats(times: np.ndarray, onset_env: np.ndarray) -> tuple[np.n
     phase = float(ph[k] - lag)
     if phase >= SWING["max_phase"] or prof[k] < SWING["min_rel"] * prof.max():
         return t, 0.0
-    ibi = np.diff(t)
-    return t + phase * np.r_[ibi, ibi[-1]], phase
+    return t + phase * _next_intervals(t), phase
+
+
+def _next_intervals(times: np.ndarray) -> np.ndarray:
+    """(K,) s from each beat of ``times`` (K >= 2) to the next; the last beat repeats the last
+    interval. A beat moved a fraction of a beat later moves by that fraction of this."""
+    ibi = np.diff(times)
+    return np.r_[ibi, ibi[-1]]
 
 
 def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
@@ -259,8 +266,7 @@ def off_beat_gain(times: np.ndarray, onset_env: np.ndarray, chroma: np.ndarray) 
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 2:
         return np.zeros(len(t))
-    ibi = np.diff(t)
-    shifted = t + 0.5 * np.r_[ibi, ibi[-1]]
+    shifted = t + 0.5 * _next_intervals(t)
     pitched = np.r_[0.0, np.maximum(np.diff(chroma, axis=1), 0.0).sum(axis=0)]
     gain = np.zeros(len(t))
     for curve in (pitched, onset_env):
@@ -270,14 +276,21 @@ def off_beat_gain(times: np.ndarray, onset_env: np.ndarray, chroma: np.ndarray) 
     return gain
 
 
+def off_beat_score(times: np.ndarray, onset_env: np.ndarray, chroma: np.ndarray) -> float:
+    """The grid's mean :func:`off_beat_gain` (0.0 under 8 beats: too few to say): above 0 the
+    notes start rather half a beat after its beats, below 0 on them."""
+    t = np.asarray(times, dtype=np.float64)
+    return float(off_beat_gain(t, onset_env, chroma).mean()) if len(t) >= 8 else 0.0
+
+
 def mend_off_beat_grid(
     times: np.ndarray, onset_env: np.ndarray, chroma: np.ndarray
 ) -> tuple[np.ndarray, float]:
     """Move onto the beat a grid that sits on the straight off-beats all song long.
 
     Off-beat drums and a syncopated bass can hold a tracker on the "and"s from start to end,
-    where no slip shows and the other tracker often agrees. The notes do not follow them: the
-    mean :func:`off_beat_gain` of the grid above ``OFF_BEAT['min_score']`` moves every beat half
+    where no slip shows and the other tracker often agrees. The notes do not follow them: an
+    :func:`off_beat_score` of the grid above ``OFF_BEAT['min_score']`` moves every beat half
     an interval later. On 360 generated songs (seeds in ``bench/bench_music.py``) the 349 grids
     on the beat score 0.77 at most (a 142 BPM rock song; the next 0.66), 4 of the 11 grids on
     the off-beats 0.89-1.42 (the other 7, -0.41-0.59, stay): the threshold is the middle of that
@@ -285,13 +298,10 @@ def mend_off_beat_grid(
     (12, T) at 50 fps. Returns (beat times (K,), the score).
     """
     t = np.asarray(times, dtype=np.float64)
-    if len(t) < 8:
-        return t, 0.0
-    score = float(off_beat_gain(t, onset_env, chroma).mean())
+    score = off_beat_score(t, onset_env, chroma)
     if score <= OFF_BEAT["min_score"]:
         return t, score
-    ibi = np.diff(t)
-    return t + 0.5 * np.r_[ibi, ibi[-1]], score
+    return t + 0.5 * _next_intervals(t), score
 
 
 def mend_half_beat_slips(
@@ -356,18 +366,19 @@ def mend_half_beat_slips(
     if not off.any():
         return t, 0
     # the side on the off-beats: its notes start half a beat after its beats
-    to_move = off if gain[off].mean() > gain[~off].mean() else ~off
-    clear = abs(gain[off].mean() - gain[~off].mean()) > SLIP["side_margin"]
+    gain_off, gain_on = float(gain[off].mean()), float(gain[~off].mean())
+    off_moves = gain_off > gain_on
+    clear = abs(gain_off - gain_on) > SLIP["side_margin"]
     # one slip: the two sides are the song's start and end; a short one is an intro or outro
-    short = off if off.sum() <= len(off) / 2 else ~off
+    off_short = off.sum() <= len(off) / 2
+    short = off if off_short else ~off
     edge = (
         np.count_nonzero(np.diff(off)) == 1
         and SLIP["edge_beats"] <= short.sum() <= SLIP["edge_share"] * len(t)
-        and not (clear and not np.array_equal(to_move, short))
+        and (not clear or off_moves == off_short)
     )
-    if edge:
-        to_move = short
-    nxt = np.r_[ibi, ibi[-1]]
+    to_move = short if edge else (off if off_moves else ~off)
+    nxt = _next_intervals(t)
     idx = np.flatnonzero(to_move)
     moved = t.copy()
     n_moved = 0
@@ -614,7 +625,7 @@ def track_beats(
                 halve = sub < DOUBLE["max_subdivision"] and half_bpm >= DOUBLE["min_half_bpm"]
                 if halve:
                     # the beats are the half the notes start on (the other half: the "and"s)
-                    _, odd = mend_off_beat_grid(times[0::2], onset_env, spec.chroma)
+                    odd = off_beat_score(times[0::2], onset_env, spec.chroma)
                     keep = np.arange(len(times)) % 2 == (1 if odd > 0 else 0)
                     times, positions, meters = times[keep], positions[keep], meters[keep]
                     frames, tracked = frames[keep], tracked[keep]
