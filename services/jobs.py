@@ -189,12 +189,20 @@ def list_jobs(
 
 
 def _update_live(
-    session: Session, job_id: str, values: dict[str, Any], *, only: tuple[str, ...] | None = None
+    session: Session,
+    job_id: str,
+    values: dict[str, Any],
+    *,
+    only: tuple[str, ...] | None = None,
+    worker: str | None = None,
 ) -> bool:
-    """Conditional update of a job that is not final (and, with ``only``, in one of those states)."""
+    """Conditional update of a job that is not final (and, with ``only``, in one of those states;
+    with ``worker``, held by that worker)."""
     cond = [Job.id == job_id, Job.status.not_in(FINAL_STATUSES)]
     if only is not None:
         cond.append(Job.status.in_(only))
+    if worker is not None:
+        cond.append(Job.worker == worker)
     values = {**values, "updated_at": utcnow()}
     res = session.execute(
         update(Job).where(*cond).values(**values).execution_options(synchronize_session=False)
@@ -248,15 +256,21 @@ def claim_job(
 
 
 def heartbeat(
-    session: Session, job_id: str, *, stage: str | None = None, progress: float | None = None
+    session: Session,
+    job_id: str,
+    *,
+    stage: str | None = None,
+    progress: float | None = None,
+    worker: str | None = None,
 ) -> bool:
-    """Record progress of a running job; False when it is no longer running (e.g. cancelled)."""
+    """Record progress of a running job; False when it is no longer running (e.g. cancelled) or,
+    with ``worker``, no longer held by that worker (requeued by the reaper and claimed anew)."""
     values: dict[str, Any] = {"heartbeat_at": utcnow()}
     if stage is not None:
         values["stage"] = stage
     if progress is not None:
         values["progress"] = float(max(0.0, min(100.0, progress)))
-    return _update_live(session, job_id, values, only=(RUNNING,))
+    return _update_live(session, job_id, values, only=(RUNNING,), worker=worker)
 
 
 def set_status(

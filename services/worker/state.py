@@ -17,11 +17,9 @@ import os
 import socket
 import threading
 
-from sqlalchemy import update
-
 from services import jobs
 from services.db import session_scope
-from services.models import FINAL_STATUSES, RUNNING, Job, utcnow
+from services.models import FINAL_STATUSES, Job
 
 log = logging.getLogger("dancegraph.worker")
 
@@ -69,20 +67,8 @@ def beat(job_id: str, *, stage: str | None = None, percent: float | None = None)
     False when the job is no longer ours: cancelled, finished, or requeued by the reaper and
     claimed by another worker (the ``worker`` column names the holder).
     """
-    now = utcnow()
-    values: dict = {"heartbeat_at": now, "updated_at": now}
-    if stage is not None:
-        values["stage"] = stage
-    if percent is not None:
-        values["progress"] = float(max(0.0, min(100.0, percent)))
     with session_scope() as session:
-        res = session.execute(
-            update(Job)
-            .where(Job.id == job_id, Job.status == RUNNING, Job.worker == worker_name())
-            .values(**values)
-            .execution_options(synchronize_session=False)
-        )
-        return res.rowcount == 1
+        return jobs.heartbeat(session, job_id, stage=stage, progress=percent, worker=worker_name())
 
 
 def progress(job_id: str, stage: str, percent: float) -> None:
