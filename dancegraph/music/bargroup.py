@@ -68,6 +68,7 @@ __all__ = [
     "group_beats",
     "harmonic_change",
     "meter_distances",
+    "peak_near",
     "phase_viterbi",
     "restart_costs",
 ]
@@ -99,6 +100,13 @@ LOCAL_BEATS = 12
 
 def _z(v: np.ndarray) -> np.ndarray:
     return (v - v.mean()) / (v.std() + 1e-9)
+
+
+def peak_near(curve: np.ndarray, frames: np.ndarray, reach: int = 2) -> np.ndarray:
+    """(K,) the maximum of ``curve`` (T,) within ``reach`` frames of each of ``frames`` (K,),
+    clipped to the curve: a detector's peak lags or leads the beat it belongs to by a frame."""
+    fr = np.clip(np.asarray(frames, dtype=np.int64), 0, len(curve) - 1)
+    return np.array([curve[max(f - reach, 0) : f + reach + 1].max() for f in fr], dtype=np.float64)
 
 
 def _beat_spans(frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -187,12 +195,10 @@ def downbeat_evidence(
     """
     from scipy.ndimage import uniform_filter1d
 
-    fr = np.clip(np.asarray(frames, dtype=np.int64), 0, len(act) - 1)
-    own = np.ones(len(fr), dtype=bool) if tracked is None else np.asarray(tracked, dtype=bool)
-    d = np.array([act[max(f - 2, 0) : f + 3, 1].max() for f in fr], dtype=np.float64)
-    d = np.clip(d, 1e-3, 1 - 1e-3)
+    own = np.ones(len(frames), dtype=bool) if tracked is None else np.asarray(tracked, dtype=bool)
+    d = np.clip(peak_near(act[:, 1], frames), 1e-3, 1 - 1e-3)
     logit = np.log(d) - np.log1p(-d)
-    net = np.zeros(len(fr))
+    net = np.zeros(len(frames))
     if own.sum() > 1:
         net[own] = _z(logit[own])
     e = net + HARMONY_WEIGHT * _z(harmonic_change(chroma, frames))

@@ -16,7 +16,9 @@ from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
 from dancegraph.music.beats import (
     SLIP,
+    _spectral,
     beat_f_measure,
+    half_beat_parity,
     mend_half_beat_slips,
     mend_off_beat_grid,
     mend_swing_off_beats,
@@ -165,15 +167,21 @@ def test_subdivision_strength_sees_what_sounds_between_the_beats() -> None:
         assert subdivision_strength(envelope(*sub), beats) > 0.3
 
 
-@pytest.mark.parametrize("seed,hard", [(1013, False), (2022, True), (8009, True)])
-def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool) -> None:
+@pytest.mark.parametrize(
+    "seed,hard,tempo",
+    [(1013, False, None), (2022, True, None), (8009, True, None), (12025, True, None),
+     (17023, False, 81.0)],
+)  # fmt: skip
+def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool, tempo: float | None) -> None:
     """79-81 BPM songs whose off-beat eighths both trackers count as beats (158-167 BPM):
     nothing sounds between the tracked beats, so every other beat is kept — the half the notes
-    start on — and the tempo, beats, meter (8009 is in 3/4: 6 eighths a bar, which the decoder
-    counted as 4) and bars are the song's (downbeat F was 0.66 / 0.55 / 0.28 before)."""
+    start on — and the tempo, beats, meter (8009 and 12025 are in 3/4: 6 eighths a bar, which
+    the decoder counted as 4) and bars are the song's (downbeat F was 0.66 / 0.55 / 0.28
+    before). In 12025 (anticipated chords, off-beat drums, syncopated bass) and 17023 the notes
+    alone chose the wrong half (beat F 0.00); BeatNet's beat activation and the snare tell."""
     from dancegraph.music.generator import generate_song
 
-    song = generate_song(seed, hard=hard)
+    song = generate_song(seed, hard=hard, **({"tempo_bpm": tempo} if tempo else {}))
     res = track_beats(song.y, song.sr)
     assert any(w.startswith("beats_halved") for w in res.warnings)
     # the decoder's downbeats were among the eighths: moving off them is no news to report
@@ -182,6 +190,53 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool) -> None:
     assert res.meter == song.truth["meter"]
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_half_beat_parity_weighs_the_network_and_the_snare_with_the_notes() -> None:
+    """Which half of an eighth-note grid holds the beats: where the network's beat activation
+    and the snare-band noise onsets peak, even against notes slightly on the other half; with
+    no network or snare contrast (a flat activation, a song without drums) the notes decide."""
+    fps = 50
+    eighths = np.arange(64) * 0.24 + 0.5  # 125 BPM eighths, s (12 frames apart)
+    n = int(eighths[-1] * fps) + 50
+    frames = np.round(eighths * fps).astype(int)
+
+    def curve(even: float, odd: float) -> np.ndarray:
+        c = np.zeros(n)
+        c[frames[0::2]], c[frames[1::2]] = even, odd
+        return c
+
+    chroma = np.zeros((12, n))
+    same, silent = curve(1.0, 1.0), np.zeros(n)
+    assert half_beat_parity(eighths, curve(0.3, 0.9), same, chroma, curve(0.0, 1.0)) < 0
+    assert half_beat_parity(eighths, curve(0.9, 0.3), same, chroma, curve(1.0, 0.0)) > 0
+    notes_even = curve(1.0, 0.9)
+    assert half_beat_parity(eighths, curve(0.3, 0.9), notes_even, chroma, curve(0, 1)) < 0
+    assert half_beat_parity(eighths, same, notes_even, chroma, silent) > 0
+    assert half_beat_parity(eighths, same, curve(0.9, 1.0), chroma, silent) < 0
+
+
+def test_snare_curve_hears_noise_bursts_not_notes() -> None:
+    """The snare-band curve peaks at noise bursts (snare, clap), hardly at piano-like notes
+    whose harmonics fill the same band; the onset strength peaks at both."""
+    sr = 22050
+    y = np.zeros(8 * sr, dtype=np.float32)
+    rng = np.random.default_rng(0)
+    t = np.arange(int(0.2 * sr)) / sr
+    note = sum(np.sin(2 * np.pi * 440 * k * t) / k for k in range(1, 12)) * np.exp(-8 * t)
+    noise = rng.standard_normal(len(t)) * np.exp(-25 * t)
+    notes_at, noise_at = np.arange(0.5, 7.5, 1.0), np.arange(1.0, 7.5, 1.0)
+    for at in notes_at:
+        y[int(at * sr) : int(at * sr) + len(t)] += 0.3 * note.astype(np.float32)
+    for at in noise_at:
+        y[int(at * sr) : int(at * sr) + len(t)] += 0.3 * noise.astype(np.float32)
+    spec = _spectral(y)
+
+    def peaks(c: np.ndarray, at: np.ndarray) -> float:
+        return float(np.mean([c[int(x * 50) - 1 : int(x * 50) + 4].max() for x in at]))
+
+    assert peaks(spec.snare_onset, noise_at) > 5 * peaks(spec.snare_onset, notes_at)
+    assert peaks(spec.onset_env, notes_at) > 0.5 * peaks(spec.onset_env, noise_at)
 
 
 def test_meter_needs_a_clear_self_similarity_margin() -> None:
