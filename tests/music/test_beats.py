@@ -18,6 +18,7 @@ from dancegraph.music.beats import (
     SLIP,
     _spectral,
     beat_f_measure,
+    find_slips,
     half_beat_parity,
     mend_half_beat_slips,
     mend_off_beat_grid,
@@ -408,6 +409,50 @@ def test_swung_off_beat_grid_is_moved_onto_the_beat() -> None:
         straight[int(round((t + 0.5 * period) * fps))] += 0.8
     kept, shift = mend_swing_off_beats(beats + 0.5 * period, straight)
     assert shift == 0.0
+
+
+def test_swung_off_beat_section_is_moved_where_the_rest_swings() -> None:
+    """A grid that slips onto the swung off-beats for 20 beats and back: that section alone
+    moves onto the beat (one whole-grid profile would move the right beats too). In a straight
+    song a section on the off-beats whose next notes come early (0.4) stays: the rest of the
+    grid does not swing the other way."""
+    fps, period = 50.0, 0.6
+    beats = np.arange(1.0, 38.0, period)  # 62 beats
+    grid = beats.copy()
+    grid[20:40] += 0.62 * period
+    swung = np.zeros(int(40 * fps))
+    for t in beats:
+        swung[int(round(t * fps))] += 1.0
+        swung[int(round((t + 0.62 * period) * fps))] += 0.8
+    centres, splits = find_slips(grid)
+    assert splits.tolist() == [20, 40] and len(centres) == 2
+    mended, shift = mend_swing_off_beats(grid, swung)
+    assert 0.3 < shift < 0.45
+    assert beat_f_measure(beats, mended, tol=0.03) > 0.97
+
+    grid = beats.copy()
+    grid[20:40] += 0.5 * period
+    straight = np.zeros(int(40 * fps))
+    for i, t in enumerate(beats):
+        straight[int(round(t * fps))] += 1.0
+        straight[int(round((t + 0.5 * period) * fps))] += 0.8
+        if 20 <= i < 40:  # early notes, 0.4 beat after the off-beat grid's beats
+            straight[int(round((t + 0.9 * period) * fps))] += 1.2
+    kept, shift = mend_swing_off_beats(grid, straight)
+    assert shift == 0.0 and np.array_equal(kept, grid)
+
+
+def test_slow_swung_song_with_sections_on_the_off_beats_is_mended() -> None:
+    """83 BPM 3/4 song swung at 0.14: BeatNet puts its first 39 beats on the swung off-beats
+    and then comes back; the whole-grid swing test saw no swing (beat F 0.67). The section is
+    moved alone."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(17009, tempo_bpm=83.0)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_swing_mended") for w in res.warnings)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
 
 
 def test_swung_hard_song_tracked_on_the_off_beats_is_mended() -> None:
