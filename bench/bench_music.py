@@ -1,12 +1,15 @@
 """Music analysis accuracy and speed on generated songs with exact ground truth, and the outputs
 for the CC recordings in ../shared/datasets/music/cc.
 
-Usage: ``python bench/bench_music.py [--songs N] [--hard N] [--seed-base S S] [--no-cc]``
-(default: 24 normal songs from seed 1000, 40 hard from seed 2000, about 3 minutes). The
-analysis' thresholds were measured on seeds 1000-1029, 2000-2039, 3000-3029, 4000-4029,
-6000-6059, 7000-7039, 8000-8039 and (the whole-grid off-beat threshold) 13000-13029
-(``--seed-base NORMAL HARD``); normal 9000-9019 and hard 12000-12039 were run only after
-them, as a fresh check.
+Usage: ``python bench/bench_music.py [--songs N] [--hard N] [--seed-base S S]
+[--tempo-range LO HI] [--no-cc]`` (default: 24 normal songs from seed 1000, 40 hard from seed
+2000, tempos drawn by the seed, about 3 minutes). The analysis' thresholds were measured on
+seeds 1000-1029, 2000-2039, 3000-3029, 4000-4029, 6000-6059, 7000-7039, 8000-8039 and (the
+whole-grid off-beat threshold) 13000-13029 (``--seed-base NORMAL HARD``); normal 9000-9019 and
+hard 12000-12039 were run only after them, as a fresh check, and normal 15000-15029, hard
+14000-14039 after the halving parity and the swing mend by sections (2026-11-30), with slow
+songs (``--tempo-range 70 95``: normal 17000-17029, hard 16000-16059) and fast ones
+(``--tempo-range 150 180``: normal 18000-18039, hard 19000-19029).
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
@@ -96,8 +99,14 @@ def true_dance_bars(truth: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_generated(
-    n_songs: int, n_hard: int, out: Path, bases: tuple[int, int] = (1000, 2000)
+    n_songs: int,
+    n_hard: int,
+    out: Path,
+    bases: tuple[int, int] = (1000, 2000),
+    tempo_range: tuple[int, int] | None = None,
 ) -> list[dict]:
+    """Analyse generated songs; with ``tempo_range`` (LO, HI) BPM each song's tempo is pinned
+    to ``LO + (7 * seed) % (HI - LO)`` (spread over the range), else drawn from the seed."""
     rows = []
     seeds = [(bases[0] + i, False) for i in range(n_songs)]
     seeds += [(bases[1] + i, True) for i in range(n_hard)]
@@ -107,7 +116,11 @@ def run_generated(
     )
     analyze(warm.y, warm.sr)
     for seed, hard in seeds:
-        song = generate_song(seed, hard=hard)
+        pinned = {}
+        if tempo_range is not None:
+            lo, hi = tempo_range
+            pinned["tempo_bpm"] = float(lo + (7 * seed) % (hi - lo))
+        song = generate_song(seed, hard=hard, **pinned)
         wav, _ = write_song(song, out, f"song_{seed}")
         tr = song.truth
         t0 = time.process_time()
@@ -232,10 +245,18 @@ def main(argv: list[str] | None = None) -> int:
         metavar=("NORMAL", "HARD"),
         help="first seed of the normal and of the hard songs",
     )
+    ap.add_argument(
+        "--tempo-range",
+        type=int,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="pin each song's tempo within LO-HI BPM (by the seed) instead of drawing it",
+    )
     ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
     args = ap.parse_args(argv)
+    tempo_range = tuple(args.tempo_range) if args.tempo_range else None
     with tempfile.TemporaryDirectory() as tmp:
-        rows = run_generated(args.songs, args.hard, Path(tmp), tuple(args.seed_base))
+        rows = run_generated(args.songs, args.hard, Path(tmp), tuple(args.seed_base), tempo_range)
     summarise(rows)
     if not args.no_cc:
         run_cc()
