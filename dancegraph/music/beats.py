@@ -17,9 +17,10 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     warning ``beat_phase_shifted``).
   - twice the tactus: when nothing sounds between the tracked beats (:func:`subdivision_strength`)
     they are the music's eighths; every other beat is kept, the half that the notes, BeatNet's
-    beat activation and the snare-band noise onsets prefer (:func:`half_beat_parity`), and the
-    meter is regrouped without the decoder's count of eighths as a prior (warning
-    ``beats_halved``).
+    beat activation and the snare-band noise onsets prefer (:func:`half_beat_parity`); where the
+    eighth grid slid by one eighth, the kept beats slip by half a beat and the slip mend runs
+    again on them; the meter is regrouped without the decoder's count of eighths as a prior
+    (warning ``beats_halved``).
   - bar grouping (:mod:`dancegraph.music.bargroup`): the meter from bar-length self-similarity
     and the bar phase from a beat-level bar-pointer model on BeatNet's downbeat evidence plus
     the harmonic change into each beat, with warnings ``meter_regrouped`` /
@@ -616,6 +617,11 @@ def _beatnet_beats(
     return barpointer.decode(act, params), act
 
 
+def _nearest(times: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(K,) index of the beat of ``reference`` (M,) nearest to each of ``times`` (K,)."""
+    return np.abs(times[:, None] - reference[None, :]).argmin(axis=1)
+
+
 def _loudness(y22: np.ndarray) -> float:
     """95th percentile of the RMS of 0.5 s blocks (the level of the loud parts)."""
     n = int(0.5 * SR)
@@ -736,11 +742,8 @@ def track_beats(
                     )
                 if swing or moved or shifted:
                     # the decoder's grouping of the nearest original beat, as the reference
-                    near = np.abs(times[:, None] - dec.times[None, :]).argmin(axis=1)
+                    near = _nearest(times, dec.times)
                     positions, meters = positions[near], meters[near]
-                frames = np.round(times * FPS).astype(np.int64)
-                # beats a mend moved: the network's downbeat activation is not about them
-                tracked = np.abs(times[:, None] - dec.times[None, :]).min(axis=1) <= 2 / FPS
                 sub = subdivision_strength(onset_env, times)
                 half_bpm = 30.0 / float(np.median(np.diff(times)))
                 halve = sub < DOUBLE["max_subdivision"] and half_bpm >= DOUBLE["min_half_bpm"]
@@ -751,11 +754,23 @@ def track_beats(
                     )
                     keep = np.arange(len(times)) % 2 == (0 if parity >= 0 else 1)
                     times, positions, meters = times[keep], positions[keep], meters[keep]
-                    frames, tracked = frames[keep], tracked[keep]
                     warnings.append(
                         f"beats_halved: nothing sounds between the tracked beats (subdivision "
                         f"{sub:.2f}): they were the eighths; every other one kept, {half_bpm:.1f} BPM"
                     )
+                    # an eighth grid that slid by one eighth is a half-beat slip of the beats kept
+                    gain = off_beat_gain(times, onset_env, spec.chroma)
+                    mended, moved = mend_half_beat_slips(times, lib[0], gain)
+                    if moved:
+                        near = _nearest(mended, times)
+                        times, positions, meters = mended, positions[near], meters[near]
+                        warnings.append(
+                            f"beat_slip_mended: {moved} of the beats kept after halving moved "
+                            "half a beat (the eighth grid had slid by one eighth)"
+                        )
+                frames = np.round(times * FPS).astype(np.int64)
+                # beats a mend moved: the network's downbeat activation is not about them
+                tracked = np.abs(times[:, None] - dec.times[None, :]).min(axis=1) <= 2 / FPS
                 positions, meters, notes = group_beats(
                     positions, meters, act, frames, onset_env, spec.bass_onset, spec.chroma,
                     tracked, meter_prior=not halve,
