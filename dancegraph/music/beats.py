@@ -547,8 +547,7 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
     mel_fb = librosa.filters.mel(sr=SR, n_fft=n_fft)
     chroma_fb = librosa.filters.chroma(sr=SR, n_fft=n_fft, tuning=0.0)
     n_bass = int(200 * n_fft / SR)  # bins below 200 Hz
-    freqs = np.fft.rfftfreq(n_fft, 1.0 / SR)
-    snare_band = (freqs >= SNARE_BAND_HZ[0]) & (freqs < SNARE_BAND_HZ[1])
+    snare_band = slice(*(int(np.ceil(hz * n_fft / SR)) for hz in SNARE_BAND_HZ))  # bins
     mel = np.empty((mel_fb.shape[0], n_frames), dtype=np.float32)
     chroma = np.empty((12, n_frames), dtype=np.float32)
     bass = np.empty(n_frames, dtype=np.float32)
@@ -561,12 +560,12 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
         mel[:, a:b] = mel_fb @ power
         chroma[:, a:b] = chroma_fb[:, n_bass:] @ power[n_bass:]
         bass[a:b] = mag[:n_bass].sum(axis=0)
-        band = power[snare_band]
-        log_band = np.log(band + 1e-10)
-        rise = np.diff(log_band, axis=1, prepend=log_band[:, :1] if last is None else last)
-        flatness = np.exp(log_band.mean(axis=0)) / (band.mean(axis=0) + 1e-10)
-        snare[a:b] = np.maximum(rise, 0.0).mean(axis=0) * flatness
-        last = log_band[:, -1:]
+        band = np.ascontiguousarray(power.T[:, snare_band])  # (frames, bins): rows contiguous
+        log_band = np.log(band + np.float32(1e-10))
+        rise = np.diff(log_band, axis=0, prepend=log_band[:1] if last is None else last)
+        flatness = np.exp(log_band.mean(axis=1)) / (band.mean(axis=1) + np.float32(1e-10))
+        snare[a:b] = np.maximum(rise, 0.0).mean(axis=1) * flatness
+        last = log_band[-1:]
     onset_env = librosa.onset.onset_strength(
         S=librosa.power_to_db(mel), sr=SR, hop_length=HOP, n_fft=n_fft
     )
