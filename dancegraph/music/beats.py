@@ -6,9 +6,9 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   with bar restarts allowed between sections so the downbeat phase can change. Then the votes
   (``vote=True``):
   - swung off-beats: a grid on the swung off-beats (the next onset comes before the middle of
-    its beat, which swing never does), or the sections between slips that are while the rest
-    swings the other way, is moved onto the beat (:func:`mend_swing_off_beats`, warning
-    ``beat_swing_mended``).
+    its beat, which swing never does), or a section between slips that sits there while the
+    rest of the grid swings the other way, is moved onto the beat
+    (:func:`mend_swing_off_beats`, warning ``beat_swing_mended``).
   - half-beat slips: sections whose beats BeatNet put on the off-beats (a grid that slips by
     half a beat and back at a steady tempo) are moved back where the librosa tracker agrees
     (:func:`mend_half_beat_slips`, warning ``beat_slip_mended``).
@@ -723,8 +723,9 @@ def track_beats(
                         f"or sections between slips); moved up to {swing:.2f} beat later, onto "
                         "the onsets the swing leads to"
                     )
-                gain = off_beat_gain(times, onset_env, spec.chroma)
-                times, moved = mend_half_beat_slips(times, lib[0], gain)
+                times, moved = mend_half_beat_slips(
+                    times, lib[0], off_beat_gain(times, onset_env, spec.chroma)
+                )
                 if moved:
                     warnings.append(
                         f"beat_slip_mended: {moved} beats a section put on the off-beats "
@@ -758,8 +759,9 @@ def track_beats(
                         f"{sub:.2f}): they were the eighths; every other one kept, {half_bpm:.1f} BPM"
                     )
                     # an eighth grid that slid by one eighth is a half-beat slip of the beats kept
-                    gain = off_beat_gain(times, onset_env, spec.chroma)
-                    mended, moved = mend_half_beat_slips(times, lib[0], gain)
+                    mended, moved = mend_half_beat_slips(
+                        times, lib[0], off_beat_gain(times, onset_env, spec.chroma)
+                    )
                     if moved:
                         near = _nearest(mended, times)
                         times, positions, meters = mended, positions[near], meters[near]
