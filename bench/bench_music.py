@@ -9,7 +9,9 @@ whole-grid off-beat threshold) 13000-13029 (``--seed-base NORMAL HARD``); normal
 hard 12000-12039 were run only after them, as a fresh check, and normal 15000-15029, hard
 14000-14039 after the halving parity and the swing mend by sections (2026-11-30), with slow
 songs (``--tempo-range 70 95``: normal 17000-17029, hard 16000-16059) and fast ones
-(``--tempo-range 150 180``: normal 18000-18039, hard 19000-19029).
+(``--tempo-range 150 180``: normal 18000-18039, hard 19000-19029); the split of half-tempo
+grids (``beats_split``) was then checked on normal 21000-21029, hard 20000-20039 and, at 150-180
+BPM, normal 23000-23029 and hard 22000-22029.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;

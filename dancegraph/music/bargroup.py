@@ -52,8 +52,11 @@ before -> after on four seed sets (``--seed-base``; 154 hard and 120 normal song
 on every set. What is left: sections on the off-beats whose notes do not clearly start after
 the beats, the downbeat under an anticipated bass root or an off-beat kick where the chords
 change on two beats of the bar alike, a halved grid whose bars start on the wrong beat, and
-160-180 BPM songs tracked at half their tempo (no cue found that would not also double
-80-95 BPM songs with sixteenths). ``metricon`` 0.1.0 (MIT) decoding the same activations gets
+160-180 BPM songs tracked at half their tempo (no cue in the onsets found that would not also
+double 80-95 BPM songs with sixteenths; the bars tell instead: a 4-beat "bar" holding two bars
+of the song is marked in its middle almost as at its start — :func:`half_bar_contrast`, the
+duple test's statistic — and :mod:`dancegraph.music.beats` splits such grids, ``beats_split``;
+3/4 songs at half tempo are left). ``metricon`` 0.1.0 (MIT) decoding the same activations gets
 the hard downbeats no better than our own decoder (F 0.48 on 24 hard songs): it was not adopted.
 """
 
@@ -66,6 +69,7 @@ __all__ = [
     "downbeat_evidence",
     "grid_glitches",
     "group_beats",
+    "half_bar_contrast",
     "harmonic_change",
     "meter_distances",
     "peak_near",
@@ -205,6 +209,16 @@ def downbeat_evidence(
     return e - uniform_filter1d(e, LOCAL_BEATS, mode="nearest")
 
 
+def half_bar_contrast(evidence: np.ndarray, positions: np.ndarray) -> float:
+    """Mean downbeat ``evidence`` (K,) at the bars' first beats minus that at their third beats
+    (``positions`` (K,) of 4-beat bars; NaN without both): small when the middle of the bar is
+    marked as strongly as its start, i.e. when a "bar" holds two bars of music."""
+    first, middle = evidence[positions == 1], evidence[positions == 3]
+    if len(first) == 0 or len(middle) == 0:
+        return float("nan")
+    return float(first.mean() - middle.mean())
+
+
 def phase_viterbi(
     evidence: np.ndarray, meter: int, log_restart: float | np.ndarray = LOG_RESTART
 ) -> np.ndarray:
@@ -301,7 +315,7 @@ def group_beats(
     new = phase_viterbi(e, 4 if meter == 2 else meter, restart_costs(frames))
     if meter == 2:
         # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
-        if e[new == 1].mean() - e[new == 3].mean() > DUPLE_MARGIN:
+        if half_bar_contrast(e, new) > DUPLE_MARGIN:
             meter = 4
         else:
             new = (new - 1) % 2 + 1

@@ -23,6 +23,7 @@ from dancegraph.music.beats import (
     mend_half_beat_slips,
     mend_off_beat_grid,
     mend_swing_off_beats,
+    split_beats,
     subdivision_strength,
     track_beats,
 )
@@ -193,6 +194,49 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool, tempo: float |
     assert res.meter == song.truth["meter"]
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+@pytest.mark.parametrize("seed,tempo", [(4011, None), (18012, 174.0), (23001, 177.0)])
+def test_grid_at_half_the_tempo_is_split(seed: int, tempo: float | None) -> None:
+    """161-179 BPM 4/4 songs that both the network and the decoder count at half their tempo
+    (81-91 BPM), in 4-beat bars whose third beat is marked almost as their first (4011, 18012:
+    two bars of the song in each; downbeat F was 0.00 — the bars started on its 3rd beats) or in
+    2-beat bars (23001: meter reported 2, beat F 0.66): every beat is split in two and the bars
+    regrouped, so tempo, beats, meter and downbeats are the song's."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beats_split") for w in res.warnings)
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert res.meter == song.truth["meter"] == 4
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+
+
+def test_slow_song_with_a_clear_bar_is_not_split() -> None:
+    """A 91 BPM song the decoder counts in 2-beat bars, regrouped in 4 (its bars start far more
+    clearly than their middles: contrast 3.4 against the split's 1.2), keeps its tempo."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(4003)
+    res = track_beats(song.y, song.sr)
+    assert not any(w.startswith("beats_split") for w in res.warnings)
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_split_beats_and_the_half_bar_contrast() -> None:
+    times = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    split, pos = split_beats(times, np.array([3, 4, 1, 2, 3]))
+    np.testing.assert_allclose(split, np.arange(1.0, 5.01, 0.5))
+    assert pos.tolist() == [1, 2, 3, 4, 1, 2, 3, 4, 1]  # old 1st and 3rd beats start bars
+    _, pos2 = split_beats(times, np.array([1, 2, 1, 2, 1]))  # 2-beat bars: each a bar of 4
+    assert pos2.tolist() == [1, 2, 3, 4, 1, 2, 3, 4, 1]
+    positions = np.tile([1, 2, 3, 4], 4)
+    marked = np.where(positions == 1, 2.0, np.where(positions == 3, 1.5, 0.0))
+    assert bargroup.half_bar_contrast(marked, positions) == pytest.approx(0.5)
+    assert np.isnan(bargroup.half_bar_contrast(marked, np.ones(16, dtype=np.int64)))
 
 
 def test_half_beat_parity_weighs_the_network_and_the_snare_with_the_notes() -> None:
