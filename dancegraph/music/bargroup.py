@@ -75,6 +75,7 @@ __all__ = [
     "peak_near",
     "phase_viterbi",
     "restart_costs",
+    "zscore",
 ]
 
 #: mean lag-distance difference (feature units) by which 3 or 4 must win to override the network
@@ -102,7 +103,8 @@ GLITCH_REACH = 2
 LOCAL_BEATS = 12
 
 
-def _z(v: np.ndarray) -> np.ndarray:
+def zscore(v: np.ndarray) -> np.ndarray:
+    """``v`` (K,) standardised: zero mean, unit standard deviation (all zeros if constant)."""
     return (v - v.mean()) / (v.std() + 1e-9)
 
 
@@ -204,8 +206,8 @@ def downbeat_evidence(
     logit = np.log(d) - np.log1p(-d)
     net = np.zeros(len(frames))
     if own.sum() > 1:
-        net[own] = _z(logit[own])
-    e = net + HARMONY_WEIGHT * _z(harmonic_change(chroma, frames))
+        net[own] = zscore(logit[own])
+    e = net + HARMONY_WEIGHT * zscore(harmonic_change(chroma, frames))
     return e - uniform_filter1d(e, LOCAL_BEATS, mode="nearest")
 
 

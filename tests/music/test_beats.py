@@ -26,6 +26,7 @@ from dancegraph.music.beats import (
     split_beats,
     subdivision_strength,
     track_beats,
+    within_sound,
 )
 from dancegraph.music.decode import load_audio
 from dancegraph.music.generator import generate, random_config
@@ -237,6 +238,33 @@ def test_split_beats_and_the_half_bar_contrast() -> None:
     marked = np.where(positions == 1, 2.0, np.where(positions == 3, 1.5, 0.0))
     assert bargroup.half_bar_contrast(marked, positions) == pytest.approx(0.5)
     assert np.isnan(bargroup.half_bar_contrast(marked, np.ones(16, dtype=np.int64)))
+
+
+def test_beats_stop_where_the_music_stops() -> None:
+    """The decoder counts on through the ring-out and the 1.5 s after a generated song's last
+    bar (2-4 beats); beats are kept only from the first onset to the last."""
+    song = _song(4, 4, 128.0)
+    res = track_beats(song.y, song.sr)
+    beats = np.asarray(song.truth["beats"])
+    period = 60.0 / song.truth["tempo_bpm"]
+    assert res.beats[-1] <= beats[-1] + 0.25 * period
+    assert res.beats[0] >= beats[0] - 0.25 * period
+    assert beat_f_measure(beats, res.beats) >= 0.97
+    assert res.evidence["beats_outside_sound"] >= 2
+    # without the votes the tracker is BeatNet's own: nothing dropped
+    assert "beats_outside_sound" not in track_beats(song.y, song.sr, vote=False).evidence
+
+
+def test_within_sound_keeps_the_beats_between_the_first_and_last_onset() -> None:
+    fps = 50
+    env = np.zeros(20 * fps)
+    for t in np.arange(2.0, 12.01, 0.5):  # onsets every beat from 2 s to 12 s
+        env[int(t * fps)] = 1.0
+    env[int(14.0 * fps)] = 0.05  # a click in the ring-out: under a tenth of the beats' onsets
+    times = np.arange(0.5, 16.01, 0.5)
+    keep = within_sound(times, env)
+    np.testing.assert_array_equal(times[keep], np.arange(2.0, 12.01, 0.5))
+    assert within_sound(times, np.zeros_like(env)).all()  # no onsets at all: nothing to go by
 
 
 def test_half_beat_parity_weighs_the_network_and_the_snare_with_the_notes() -> None:
