@@ -5,6 +5,13 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   decoded by the bar-pointer model (:mod:`dancegraph.music.barpointer`) over meters 2, 3 and 4,
   with bar restarts allowed between sections so the downbeat phase can change. Then the votes
   (``vote=True``):
+  - twice the tactus, decided first, on the decoder's grid: when nothing sounds between the
+    tracked beats (:func:`subdivision_strength`) they are the music's eighths; every other beat
+    is kept, the half that the notes, BeatNet's beat activation and the snare-band noise onsets
+    prefer (:func:`half_beat_parity`), and the meter is regrouped without the decoder's count of
+    eighths as a prior (warning ``beats_halved``). The mends below then work on beats: at the
+    eighth level "half a beat" would be a sixteenth (an eighth grid that slid by one eighth is,
+    once halved, a half-beat slip the slip mend puts back).
   - swung off-beats: a grid on the swung off-beats (the next onset comes before the middle of
     its beat, which swing never does), or a section between slips that sits there while the
     rest of the grid swings the other way, is moved onto the beat
@@ -15,12 +22,6 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   - a whole grid on the straight off-beats: moved half a beat when the pitched onsets and the
     onset strength clearly prefer the beats half a beat later (:func:`mend_off_beat_grid`,
     warning ``beat_phase_shifted``).
-  - twice the tactus: when nothing sounds between the tracked beats (:func:`subdivision_strength`)
-    they are the music's eighths; every other beat is kept, the half that the notes, BeatNet's
-    beat activation and the snare-band noise onsets prefer (:func:`half_beat_parity`); where the
-    eighth grid slid by one eighth, the kept beats slip by half a beat and the slip mend runs
-    again on them; the meter is regrouped without the decoder's count of eighths as a prior
-    (warning ``beats_halved``).
   - bar grouping (:mod:`dancegraph.music.bargroup`): the meter from bar-length self-similarity
     and the bar phase from a beat-level bar-pointer model on BeatNet's downbeat evidence plus
     the harmonic change into each beat, with warnings ``meter_regrouped`` /
@@ -476,9 +477,12 @@ def mend_half_beat_slips(
     against 1091; the side margin (on 210 hard songs) halves the wrong moves (132 -> 68 beats)
     and keeps every right one. With one slip in the song, the shorter side — an intro or outro
     of ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
-    gain clearly says the body is the side off the beat: the body of a song sets its pulse, and
-    sparse intros and outros (chord stabs on the off-beats, no drums) are where the trackers go
-    astray. On 360 generated songs it set 15 intros/outros right (downbeat F +0.03-0.12 each),
+    gain says the body is the side off the beat (its notes start after its beats: gain above
+    ``SLIP['min_gain']``, and clearly more so than the short side's): the body of a song sets its
+    pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are where the
+    trackers go astray. A body whose notes start on its beats does not give way to an intro
+    whose notes start there even more clearly (generated 156-159 BPM songs whose 4-bar intros
+    both trackers put on the off-beats: 9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated songs it set 15 intros/outros right (downbeat F +0.03-0.12 each),
     moved one outro onto a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
     Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
     effects on a correct grid, 3 real, 3 mixed. At the section borders a beat is dropped or
@@ -500,10 +504,12 @@ def mend_half_beat_slips(
     # one slip: the two sides are the song's start and end; a short one is an intro or outro
     off_short = off.sum() <= len(off) / 2
     short = off if off_short else ~off
+    body_gain = gain_on if off_short else gain_off
+    body_off = clear and off_moves != off_short and body_gain > SLIP["min_gain"]
     edge = (
         np.count_nonzero(np.diff(off)) == 1
         and SLIP["edge_beats"] <= short.sum() <= SLIP["edge_share"] * len(t)
-        and (not clear or off_moves == off_short)
+        and not body_off
     )
     to_move = short if edge else (off if off_moves else ~off)
     nxt = _next_intervals(t)
@@ -796,7 +802,23 @@ def track_beats(
             times, positions, meters = dec.times, dec.positions, dec.meters
             if vote:
                 lib = _librosa_beats(spec)
-                times, swing = mend_swing_off_beats(dec.times, onset_env)
+                # the metrical level first: a grid with nothing between its beats counts eighths
+                sub = subdivision_strength(onset_env, times)
+                half_bpm = 30.0 / float(np.median(np.diff(times)))
+                halve = sub < DOUBLE["max_subdivision"] and half_bpm >= DOUBLE["min_half_bpm"]
+                if halve:
+                    # the beats are the half the notes start on (the other half: the "and"s)
+                    parity = half_beat_parity(
+                        times, act[:, 0], onset_env, spec.chroma, spec.snare_onset
+                    )
+                    keep = np.arange(len(times)) % 2 == (0 if parity >= 0 else 1)
+                    times, positions, meters = times[keep], positions[keep], meters[keep]
+                    warnings.append(
+                        f"beats_halved: nothing sounds between the tracked beats (subdivision "
+                        f"{sub:.2f}): they were the eighths; every other one kept, {half_bpm:.1f} BPM"
+                    )
+                level = times
+                times, swing = mend_swing_off_beats(times, onset_env)
                 if swing:
                     warnings.append(
                         f"beat_swing_mended: beats sat on the swung off-beats (the whole grid, "
@@ -822,33 +844,8 @@ def track_beats(
                     )
                 if swing or moved or shifted:
                     # the decoder's grouping of the nearest original beat, as the reference
-                    near = _nearest(times, dec.times)
+                    near = _nearest(times, level)
                     positions, meters = positions[near], meters[near]
-                sub = subdivision_strength(onset_env, times)
-                half_bpm = 30.0 / float(np.median(np.diff(times)))
-                halve = sub < DOUBLE["max_subdivision"] and half_bpm >= DOUBLE["min_half_bpm"]
-                if halve:
-                    # the beats are the half the notes start on (the other half: the "and"s)
-                    parity = half_beat_parity(
-                        times, act[:, 0], onset_env, spec.chroma, spec.snare_onset
-                    )
-                    keep = np.arange(len(times)) % 2 == (0 if parity >= 0 else 1)
-                    times, positions, meters = times[keep], positions[keep], meters[keep]
-                    warnings.append(
-                        f"beats_halved: nothing sounds between the tracked beats (subdivision "
-                        f"{sub:.2f}): they were the eighths; every other one kept, {half_bpm:.1f} BPM"
-                    )
-                    # an eighth grid that slid by one eighth is a half-beat slip of the beats kept
-                    mended, moved = mend_half_beat_slips(
-                        times, lib[0], off_beat_gain(times, onset_env, spec.chroma)
-                    )
-                    if moved:
-                        near = _nearest(mended, times)
-                        times, positions, meters = mended, positions[near], meters[near]
-                        warnings.append(
-                            f"beat_slip_mended: {moved} of the beats kept after halving moved "
-                            "half a beat (the eighth grid had slid by one eighth)"
-                        )
                 frames, tracked = _frames_tracked(times, dec.times)
                 positions, meters, notes = group_beats(
                     positions, meters, act, frames, onset_env, spec.bass_onset, spec.chroma,

@@ -183,7 +183,7 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool, tempo: float |
     before). In 12025 (anticipated chords, off-beat drums, syncopated bass) and 17023 the notes
     alone chose the wrong half (beat F 0.00); BeatNet's beat activation and the snare tell. In
     3027 the eighth grid slides by one eighth after 142 beats: the kept beats slip by half a
-    beat there, which the slip mend, run again after halving, puts back (beat F 0.63 before)."""
+    beat there, which the slip mend, run after halving, puts back (beat F 0.63 before)."""
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, hard=hard, **({"tempo_bpm": tempo} if tempo else {}))
@@ -446,6 +446,31 @@ def test_mend_half_beat_slips_moves_an_intro_one_slip_from_the_body() -> None:
             assert beat_f_measure(truth, mended) > 0.95 > 0.85 > beat_f_measure(truth, tracked)
         else:
             assert moved == 0 and np.array_equal(mended, tracked)
+    # the notes start on the body's beats, and on the intro's even more clearly: the body keeps
+    # the pulse and the intro moves; a body whose notes start after its beats moves instead
+    intro = np.arange(len(truth)) < 16
+    for body_gain, intro_moves in ((-1.8, True), (0.5, False)):
+        tracked = truth.copy()
+        tracked[:16] += period / 2
+        tracked[16:20] += np.linspace(0.2, 0.05, 4)
+        gain = np.where(intro, -2.1 if intro_moves else 0.0, body_gain)
+        mended, _ = mend_half_beat_slips(tracked, tracked, gain)
+        intro_kept = np.isin(tracked[:14], mended).all()
+        assert intro_kept != intro_moves
+        if intro_moves:
+            assert beat_f_measure(truth, mended) > 0.95
+
+
+def test_fast_song_whose_intro_both_trackers_put_on_the_off_beats() -> None:
+    """159 BPM: the 4-bar intro (chord stabs, no drums) is on the off-beats for the network and
+    librosa alike; its notes look on its beats even more clearly than the body's do on the
+    body's, which no longer keeps it there (downbeat F 0.88 before)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(9001)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_slip_mended") for w in res.warnings)
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
 
 
 def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
