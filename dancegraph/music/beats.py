@@ -482,8 +482,9 @@ def mend_half_beat_slips(
     pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are where the
     trackers go astray. A body whose notes start on its beats does not give way to an intro
     whose notes start there even more clearly (generated 156-159 BPM songs whose 4-bar intros
-    both trackers put on the off-beats: 9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated songs it set 15 intros/outros right (downbeat F +0.03-0.12 each),
-    moved one outro onto a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
+    both trackers put on the off-beats: 9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated
+    songs the rule set 15 intros/outros right (downbeat F +0.03-0.12 each), moved one outro onto
+    a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
     Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
     effects on a correct grid, 3 real, 3 mixed. At the section borders a beat is dropped or
     inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
@@ -817,7 +818,7 @@ def track_beats(
                         f"beats_halved: nothing sounds between the tracked beats (subdivision "
                         f"{sub:.2f}): they were the eighths; every other one kept, {half_bpm:.1f} BPM"
                     )
-                level = times
+                unmended = times
                 times, swing = mend_swing_off_beats(times, onset_env)
                 if swing:
                     warnings.append(
@@ -844,7 +845,7 @@ def track_beats(
                     )
                 if swing or moved or shifted:
                     # the decoder's grouping of the nearest original beat, as the reference
-                    near = _nearest(times, level)
+                    near = _nearest(times, unmended)
                     positions, meters = positions[near], meters[near]
                 frames, tracked = _frames_tracked(times, dec.times)
                 positions, meters, notes = group_beats(
