@@ -2,7 +2,7 @@
 for the CC recordings in ../shared/datasets/music/cc.
 
 Usage: ``python bench/bench_music.py [--songs N] [--hard N] [--seed-base S S]
-[--tempo-range LO HI] [--no-cc]`` (default: 24 normal songs from seed 1000, 40 hard from seed
+[--tempo-range LO HI] [--meter 3|4] [--no-cc]`` (default: 24 normal songs from seed 1000, 40 hard from seed
 2000, tempos drawn by the seed, about 3 minutes). The analysis' thresholds were measured on
 seeds 1000-1029, 2000-2039, 3000-3029, 4000-4029, 6000-6059, 7000-7039, 8000-8039 and (the
 whole-grid off-beat threshold) 13000-13029 (``--seed-base NORMAL HARD``); normal 9000-9019 and
@@ -11,7 +11,9 @@ hard 12000-12039 were run only after them, as a fresh check, and normal 15000-15
 songs (``--tempo-range 70 95``: normal 17000-17029, hard 16000-16059) and fast ones
 (``--tempo-range 150 180``: normal 18000-18039, hard 19000-19029); the split of half-tempo
 grids (``beats_split``) was then checked on normal 21000-21029, hard 20000-20039 and, at 150-180
-BPM, normal 23000-23029 and hard 22000-22029.
+BPM, normal 23000-23029 and hard 22000-22029. The split of fast waltzes counted at half tempo
+was checked on 3/4 songs drawn for it (``--meter 3``): normal 28000-28029 and hard 28100-28119
+at 150-180 BPM, normal 29000-29029 and hard 29100-29119 at 70-95 BPM.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
@@ -106,9 +108,11 @@ def run_generated(
     out: Path,
     bases: tuple[int, int] = (1000, 2000),
     tempo_range: tuple[int, int] | None = None,
+    meter: int | None = None,
 ) -> list[dict]:
     """Analyse generated songs; with ``tempo_range`` (LO, HI) BPM each song's tempo is pinned
-    to ``LO + (7 * seed) % (HI - LO)`` (spread over the range), else drawn from the seed."""
+    to ``LO + (7 * seed) % (HI - LO)`` (spread over the range), else drawn from the seed; with
+    ``meter`` (3 or 4) every song has that meter."""
     rows = []
     seeds = [(bases[0] + i, False) for i in range(n_songs)]
     seeds += [(bases[1] + i, True) for i in range(n_hard)]
@@ -122,6 +126,8 @@ def run_generated(
         if tempo_range is not None:
             lo, hi = tempo_range
             pinned["tempo_bpm"] = float(lo + (7 * seed) % (hi - lo))
+        if meter is not None:
+            pinned["meter"] = meter
         song = generate_song(seed, hard=hard, **pinned)
         wav, _ = write_song(song, out, f"song_{seed}")
         tr = song.truth
@@ -254,11 +260,14 @@ def main(argv: list[str] | None = None) -> int:
         metavar=("LO", "HI"),
         help="pin each song's tempo within LO-HI BPM (by the seed) instead of drawing it",
     )
+    ap.add_argument("--meter", type=int, choices=(3, 4), help="pin every song's meter")
     ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
     args = ap.parse_args(argv)
     tempo_range = tuple(args.tempo_range) if args.tempo_range else None
     with tempfile.TemporaryDirectory() as tmp:
-        rows = run_generated(args.songs, args.hard, Path(tmp), tuple(args.seed_base), tempo_range)
+        rows = run_generated(
+            args.songs, args.hard, Path(tmp), tuple(args.seed_base), tempo_range, args.meter
+        )
     summarise(rows)
     if not args.no_cc:
         run_cc()

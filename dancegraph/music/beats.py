@@ -36,7 +36,15 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     (:func:`split_beats`) and the bars regrouped without the decoder's meter as a prior
     (warning ``beats_split``). Generated 150-180 BPM songs that both the network and the
     decoder counted at half tempo: contrast 0.0-1.9 (median 0.66); songs tracked at their own
-    81-95 BPM: 0.4-4.6 (5th percentile 1.5, median 3.1).
+    81-95 BPM: 0.4-4.6 (5th percentile 1.5, median 3.1). A fast waltz counted at half tempo
+    comes in 3-beat bars that hold two bars of 3, the second starting half-way through the
+    second tracked beat: on the split grid the music repeats after 3 beats as closely as after
+    6 and the harmony changes there almost as much as at the bar's start (both, also on a
+    halved grid: the halving took every other beat of a waltz without eighths). Generated
+    154-171 BPM waltzes at half tempo (6): repeat gap -0.23 to -0.07, harmony contrast
+    0.17-0.86; 125 waltzes tracked at their own 70-100 BPM: 4 with a repeat gap under 0
+    (-0.18 to -0.00), each with a harmony contrast of 1.04 or more, 19 with a contrast under
+    1.0, each with a repeat gap of +0.16 or more (:func:`_two_bars_per_bar`).
   - beats: the librosa tracker's agreement (beat F-measure at 70 ms, or a related metrical
     level) goes into the confidence.
   - where the music sounds: beats before the first onset or after the last (the decoder counts
@@ -66,10 +74,13 @@ import numpy as np
 from dancegraph.errors import AudioError, ModelFileError
 from dancegraph.music import barpointer
 from dancegraph.music.bargroup import (
+    beat_features,
     downbeat_evidence,
+    fold_contrast,
     group_beats,
     half_bar_contrast,
     harmonic_change,
+    lag_distance,
     peak_near,
     zscore,
 )
@@ -144,6 +155,10 @@ DOUBLE = {
 SPLIT = {
     "max_bpm": 95.0,  # tracked tempo under which 2 beats per bar may be a half-time count
     "max_contrast": 1.2,  # 4-beat bars whose third beat is marked almost as their first
+    # 3-beat bars: the split grid repeats after 3 beats at least as closely as after 6 ...
+    "max_repeat_gap": 0.0,
+    # ... and the harmony changes half-way through the bar almost as at its start
+    "max_harmony_contrast": 1.0,
 }
 
 # beats before the music starts or after it has stopped (see :func:`within_sound`)
@@ -337,17 +352,31 @@ def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
     return float((inner - prof.min()) / max(prof[0] - prof.min(), 1e-9))
 
 
-def split_beats(times: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def split_beats(
+    times: np.ndarray, positions: np.ndarray, meter: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
     """Every beat interval of ``times`` (K,) split in two at its middle: (2K - 1,) times and
-    their positions in 4-beat bars, a beat at ``positions`` (K,) 1 or 3 (of 4; 1 or 2 of 2)
-    starting a bar of the split grid (the inserted beats are its 2nd and 4th)."""
+    their positions in bars of the split grid. ``meter`` is the tracked grid's bar length:
+    4 (or 2), a beat at ``positions`` (K,) 1 or 3 (of 4; 1 or 2 of 2) starts a 4-beat bar of the
+    split grid (the inserted beats are its 2nd and 4th); 3, a tracked bar holds two 3-beat bars,
+    the second starting half-way through its second beat."""
     times = np.asarray(times, dtype=np.float64)
+    per_bar = 3 if meter == 3 else 4
     out = np.empty(2 * len(times) - 1)
     out[0::2], out[1::2] = times, (times[:-1] + times[1:]) / 2
     pos = np.empty(len(out), dtype=np.int64)
-    pos[0::2] = (2 * (np.asarray(positions) - 1)) % 4 + 1
-    pos[1::2] = pos[0:-1:2] + 1
+    pos[0::2] = (2 * (np.asarray(positions) - 1)) % per_bar + 1
+    pos[1::2] = pos[0:-1:2] % per_bar + 1
     return out, pos
+
+
+def _split_cycle(positions: np.ndarray) -> np.ndarray:
+    """(2K - 1,) place of each beat of a split grid in the tracked bar, 0 .. 2 * meter - 1, from
+    the tracked ``positions`` (K,) (1-based)."""
+    cycle = np.empty(2 * len(positions) - 1, dtype=np.int64)
+    cycle[0::2] = 2 * (np.asarray(positions) - 1)
+    cycle[1::2] = cycle[0:-1:2] + 1
+    return cycle
 
 
 def within_sound(times: np.ndarray, onset_env: np.ndarray) -> np.ndarray:
@@ -726,6 +755,53 @@ def _active_span(y22: np.ndarray) -> float:
     return float((rms > rms.max() * 1e-3).sum() * 0.5)
 
 
+def _two_bars_per_bar(
+    times: np.ndarray,
+    positions: np.ndarray,
+    per_bar: int,
+    halved: bool,
+    act: np.ndarray,
+    frames: np.ndarray,
+    tracked: np.ndarray,
+    spec: _Spectral,
+) -> str | None:
+    """Why the bars of a slow grid (``times`` (K,) s, ``positions`` (K,) in bars of
+    ``per_bar``) hold two bars of the music each, or None. 2-beat bars (the bar grouping found
+    their two beats alike; not on a halved grid): always. 4-beat bars (not halved): their third
+    beat is marked almost as strongly as their first (:func:`~dancegraph.music.bargroup.
+    half_bar_contrast` under ``SPLIT['max_contrast']``). 3-beat bars: two 3-beat bars of a fast
+    waltz, the second starting half-way through the second tracked beat — on the split grid
+    the music repeats after 3 beats as closely as after 6 (``SPLIT['max_repeat_gap']``) and the
+    harmony changes in the middle of the tracked bar almost as much as at its start
+    (:func:`~dancegraph.music.bargroup.fold_contrast` under ``SPLIT['max_harmony_contrast']``);
+    a slow waltz's middle is the off-beat of its second beat."""
+    if per_bar == 2:
+        return None if halved else "bars of 2 beats"
+    if per_bar == 4:
+        if halved:
+            return None
+        contrast = half_bar_contrast(
+            downbeat_evidence(act, frames, spec.chroma, tracked), positions
+        )
+        if contrast < SPLIT["max_contrast"]:
+            return (
+                f"4-beat bars marked in the middle almost as at the start (contrast {contrast:.2f})"
+            )
+        return None
+    split, _ = split_beats(times, positions, per_bar)
+    split_frames = np.round(split * FPS).astype(np.int64)
+    x = beat_features(spec.onset_env, spec.bass_onset, spec.chroma, split_frames)
+    repeat_gap = lag_distance(x, 3) - lag_distance(x, 6)
+    harmony = zscore(harmonic_change(spec.chroma, split_frames))
+    contrast = fold_contrast(harmony, _split_cycle(positions), 2 * per_bar)
+    if repeat_gap < SPLIT["max_repeat_gap"] and contrast < SPLIT["max_harmony_contrast"]:
+        return (
+            f"3-beat bars holding two 3-beat bars (repeats after 3 split beats as after 6: "
+            f"{repeat_gap:+.2f}; harmony contrast {contrast:.2f})"
+        )
+    return None
+
+
 def track_beats(
     y: np.ndarray,
     sr: int,
@@ -854,34 +930,28 @@ def track_beats(
                 )  # fmt: skip
                 evidence["subdivision"] = sub
                 warnings.extend(notes)
-                # a slow grid in 2-beat bars, or in 4-beat bars whose middle is marked as their
-                # start is, counts the half notes of a fast song: every beat is split in two
+                # a slow grid whose bars hold two bars of the music counts the half notes of a
+                # fast song: every beat is split in two
                 bpm = 60.0 / float(np.median(np.diff(times)))
-                if not halve and bpm < SPLIT["max_bpm"] and sub >= DOUBLE["max_subdivision"]:
-                    per_bar = int(meters[0])
-                    if per_bar == 4:
-                        e = downbeat_evidence(act, frames, spec.chroma, tracked)
-                        contrast = half_bar_contrast(e, positions)
-                    else:  # 2 beats: always; 3 beats (bars of 1.5 fast ones): never
-                        contrast = -np.inf if per_bar == 2 else np.inf
-                    if contrast < SPLIT["max_contrast"]:
-                        times, positions = split_beats(times, positions)
-                        frames, tracked = _frames_tracked(times, dec.times)
-                        positions, meters, notes = group_beats(
-                            positions, np.full(len(times), 4), act, frames, onset_env,
-                            spec.bass_onset, spec.chroma, tracked, meter_prior=False,
-                        )  # fmt: skip
-                        why = (
-                            "bars of 2 beats"
-                            if per_bar == 2
-                            else f"4-beat bars marked in the middle almost as at the start "
-                            f"(contrast {contrast:.2f})"
-                        )
-                        warnings.append(
-                            f"beats_split: {why} at {bpm:.1f} BPM: the beats were half notes; "
-                            f"each split in two, {2 * bpm:.1f} BPM, bars regrouped"
-                        )
-                        warnings.extend(notes)
+                per_bar = int(meters[0])
+                why = None
+                if bpm < SPLIT["max_bpm"] and (halve or sub >= DOUBLE["max_subdivision"]):
+                    why = _two_bars_per_bar(
+                        times, positions, per_bar, halve, act, frames, tracked, spec
+                    )
+                if why:
+                    times, positions = split_beats(times, positions, per_bar)
+                    frames, tracked = _frames_tracked(times, dec.times)
+                    split_meter = 3 if per_bar == 3 else 4
+                    positions, meters, notes = group_beats(
+                        positions, np.full(len(times), split_meter), act, frames, onset_env,
+                        spec.bass_onset, spec.chroma, tracked, meter_prior=False,
+                    )  # fmt: skip
+                    warnings.append(
+                        f"beats_split: {why} at {bpm:.1f} BPM: the beats were half notes; "
+                        f"each split in two, {2 * bpm:.1f} BPM, bars regrouped"
+                    )
+                    warnings.extend(notes)
             chosen = ("beatnet", times, positions, meters)
     if lib is None and (chosen is None or vote):
         lib = _librosa_beats(spec)

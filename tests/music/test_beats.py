@@ -227,6 +227,53 @@ def test_slow_song_with_a_clear_bar_is_not_split() -> None:
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
 
 
+@pytest.mark.parametrize("seed,tempo", [(13009, None), (15005, None), (23002, 154.0)])
+def test_fast_waltz_at_half_tempo_is_split(seed: int, tempo: float | None) -> None:
+    """154-171 BPM 3/4 songs counted at half their tempo in 3-beat bars, each holding two bars
+    of the song (13009, 15005: downbeat F was 0.00; 23002, whose beats have nothing between
+    them, was halved to 77 BPM first: 0.67): split in two and regrouped in 3."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beats_split: 3-beat bars") for w in res.warnings)
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert res.meter == song.truth["meter"] == 3
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+
+
+def test_slow_waltz_is_not_split() -> None:
+    """An 85 BPM 3/4 song with eighths between its beats (the nearest of the slow waltzes to
+    the split's thresholds: repeat gap +0.08, harmony contrast 1.30) keeps its tempo and bars."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(9009)
+    res = track_beats(song.y, song.sr)
+    assert not any(w.startswith("beats_split") for w in res.warnings)
+    assert res.meter == song.truth["meter"] == 3
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_split_of_three_beat_bars_and_the_fold_contrast() -> None:
+    times = np.arange(1.0, 5.01)
+    split, pos = split_beats(times, np.array([2, 3, 1, 2, 3]), meter=3)
+    np.testing.assert_allclose(split, np.arange(1.0, 5.01, 0.5))
+    # a tracked bar (1, 2, 3) is two bars of 3: the second starts half-way through beat 2
+    assert pos.tolist() == [3, 1, 2, 3, 1, 2, 3, 1, 2]
+    cycle = np.tile(np.arange(6), 4)
+    one_bar = np.where(cycle == 0, 2.0, 0.0)  # marked once per cycle
+    two_bars = np.where(cycle % 3 == 1, 2.0, 0.0)  # marked at 1 and 4: two alike halves
+    assert bargroup.fold_contrast(one_bar, cycle, 6) == pytest.approx(2.0)
+    assert bargroup.fold_contrast(two_bars, cycle, 6) == pytest.approx(0.0)
+    assert np.isnan(bargroup.fold_contrast(one_bar, np.zeros(24, dtype=np.int64), 6))
+    features = np.tile(np.eye(3), (8, 1))  # repeats every 3 beats
+    assert bargroup.lag_distance(features, 3) == 0.0
+    assert bargroup.lag_distance(features, 1) == pytest.approx(np.sqrt(2))
+    assert np.isnan(bargroup.lag_distance(features[:10], 3))
+
+
 def test_split_beats_and_the_half_bar_contrast() -> None:
     times = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     split, pos = split_beats(times, np.array([3, 4, 1, 2, 3]))
