@@ -24,7 +24,8 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     warning ``beat_phase_shifted``).
   - bar grouping (:mod:`dancegraph.music.bargroup`): the meter from bar-length self-similarity
     and the bar phase from a beat-level bar-pointer model on BeatNet's downbeat evidence plus
-    the harmonic change into each beat, with warnings ``meter_regrouped`` /
+    the harmonic change into each beat less the backbeat (snare-band noise onsets), with
+    warnings ``meter_regrouped`` /
     ``downbeat_rephased``. BeatNet leans to 4/4 and follows off-beat accents; repetition and
     chords do not. At beats a mend moved, BeatNet's downbeat activation (about its own grid)
     is left out and the harmony decides.
@@ -926,7 +927,7 @@ def track_beats(
                 frames, tracked = _frames_tracked(times, dec.times)
                 positions, meters, notes = group_beats(
                     positions, meters, act, frames, onset_env, spec.bass_onset, spec.chroma,
-                    tracked, meter_prior=not halve,
+                    tracked, meter_prior=not halve, snare_onset=spec.snare_onset,
                 )  # fmt: skip
                 evidence["subdivision"] = sub
                 warnings.extend(notes)
@@ -946,6 +947,7 @@ def track_beats(
                     positions, meters, notes = group_beats(
                         positions, np.full(len(times), split_meter), act, frames, onset_env,
                         spec.bass_onset, spec.chroma, tracked, meter_prior=False,
+                        snare_onset=spec.snare_onset,
                     )  # fmt: skip
                     warnings.append(
                         f"beats_split: {why} at {bpm:.1f} BPM: the beats were half notes; "

@@ -80,6 +80,37 @@ def test_hard_cases_bar_phase_vote(seed: int, meter: int) -> None:
     json.dumps(res.to_dict())  # evidence and warnings are JSON-able
 
 
+@pytest.mark.parametrize("seed,tempo", [(2014, None), (6006, None), (27019, 163.0)])
+def test_backbeat_marks_the_bar_under_off_beat_drums(seed: int, tempo: float | None) -> None:
+    """Hard songs with off-beat drums (no kick on the downbeat) and a syncopated bass: network
+    and harmony put the bars a beat or two off (downbeat F 0.21, 0.29, 0.00 without the
+    backbeat term); the snares on the backbeat, never on a downbeat, put them back."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, hard=True, **({"tempo_bpm": tempo} if tempo else {}))
+    assert "offbeat_drums" in song.truth["hard_cases"]
+    res = track_beats(song.y, song.sr)
+    assert res.meter == song.truth["meter"]
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+
+
+def test_backbeat_lowers_the_downbeat_evidence_of_its_beats() -> None:
+    """Constructed: no network or harmony evidence, snare hits on beats 2 and 4 of 4-beat bars
+    -> the evidence prefers beats 1 and 3 by a clear margin; without the snare curve every beat
+    is about alike."""
+    beats = 32
+    frames = np.arange(beats) * 25 + 10  # 120 BPM at 50 fps
+    n = frames[-1] + 40
+    act = np.full((n, 2), 0.1)
+    chroma = np.ones((12, n))
+    snare = np.zeros(n)
+    snare[frames[1::2]] = 1.0  # beats 2 and 4 of each bar
+    without = bargroup.downbeat_evidence(act, frames, chroma)
+    with_snare = bargroup.downbeat_evidence(act, frames, chroma, snare_onset=snare)
+    assert np.abs(without).max() < 0.2
+    assert with_snare[4:-4:2].min() > with_snare[5:-4:2].max() + 1.0
+
+
 def test_waltz_counted_in_four_is_regrouped_by_bar_self_similarity() -> None:
     """Hard 3/4 song (off-beat drums, syncopated bass, anticipated chords): the network counts
     4 beats per bar; the music repeats every 3 beats, so the meter is 3 and the bars right."""
