@@ -30,7 +30,7 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     chords do not. At beats a mend moved, BeatNet's downbeat activation (about its own grid)
     is left out and the harmony decides.
   - half the tactus: a grid under ``SPLIT['max_bpm']`` with something sounding between its
-    beats, grouped in 2-beat bars (whose two beats the bar grouping found alike) or in 4-beat
+    beats (in the middle: swung eighths there are a slow song's), grouped in 2-beat bars (whose two beats the bar grouping found alike) or in 4-beat
     bars whose third beat is marked almost as strongly as their first
     (:func:`~dancegraph.music.bargroup.half_bar_contrast` under ``SPLIT['max_contrast']``),
     counts the half notes of a fast song: every beat interval is split in two
@@ -775,7 +775,12 @@ def _two_bars_per_bar(
     the music repeats after 3 beats as closely as after 6 (``SPLIT['max_repeat_gap']``) and the
     harmony changes in the middle of the tracked bar almost as much as at its start
     (:func:`~dancegraph.music.bargroup.fold_contrast` under ``SPLIT['max_harmony_contrast']``);
-    a slow waltz's middle is the off-beat of its second beat."""
+    a slow waltz's middle is the off-beat of its second beat. Never when the notes between the
+    beats come after their middle (``SWING['min_swung']``): those are the swung eighths of a
+    slow song, while a fast song's beats halve the interval (a 70 BPM swung song was split)."""
+    between, _ = _eighth_phase(beat_phase_profile(spec.onset_env, times, SWING["bins"]))
+    if between >= SWING["min_swung"]:
+        return None
     if per_bar == 2:
         return None if halved else "bars of 2 beats"
     if per_bar == 4:

@@ -305,6 +305,19 @@ def test_split_of_three_beat_bars_and_the_fold_contrast() -> None:
     assert np.isnan(bargroup.lag_distance(features[:10], 3))
 
 
+def test_swung_slow_song_is_not_split() -> None:
+    """A 70 BPM swung song in bars whose middle is marked almost as their start (contrast 0.81)
+    is not split: the notes between its beats come at 0.6 of the interval, swung eighths, not
+    the beats of a song twice as fast (it was split to 140 BPM: downbeat F 0.62)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(24014)
+    res = track_beats(song.y, song.sr)
+    assert not any(w.startswith("beats_split") for w in res.warnings)
+    assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+
+
 def test_split_beats_and_the_half_bar_contrast() -> None:
     times = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     split, pos = split_beats(times, np.array([3, 4, 1, 2, 3]))
