@@ -84,6 +84,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "bar_clarity",
     "beat_features",
     "downbeat_evidence",
     "fold_contrast",
@@ -268,6 +269,29 @@ def fold_contrast(values: np.ndarray, cycle: np.ndarray, period: int) -> float:
         return float("nan")
     best = int(np.argmax(means))
     return float(means[best] - means[(best + period // 2) % period])
+
+
+def bar_clarity(
+    act: np.ndarray,
+    frames: np.ndarray,
+    onset_env: np.ndarray,
+    bass_onset: np.ndarray,
+    chroma: np.ndarray,
+    snare_onset: np.ndarray,
+) -> float:
+    """How clearly a beat grid (``frames`` (K,) at 50 fps) forms bars: grouped by
+    :func:`group_beats` with no prior (``act`` (T, 2), the curves (T,) and ``chroma`` (12, T)),
+    the mean :func:`downbeat_evidence` at its downbeats minus that at its other beats. NaN-free:
+    0.0 under 16 beats (too few to group)."""
+    k = len(frames)
+    if k < 16:
+        return 0.0
+    positions, _, _ = group_beats(
+        np.ones(k, dtype=np.int64), np.full(k, 4), act, frames, onset_env, bass_onset, chroma,
+        meter_prior=False, snare_onset=snare_onset,
+    )  # fmt: skip
+    e = downbeat_evidence(act, frames, chroma, snare_onset=snare_onset)
+    return float(e[positions == 1].mean() - e[positions != 1].mean())
 
 
 def phase_viterbi(

@@ -8,7 +8,7 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   - twice the tactus, decided first, on the decoder's grid: when nothing sounds between the
     tracked beats (:func:`subdivision_strength`) they are the music's eighths; every other beat
     is kept, the half that the notes, BeatNet's beat activation and the snare-band noise onsets
-    prefer (:func:`half_beat_parity`), and the meter is regrouped without the decoder's count of
+    prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter is regrouped without the decoder's count of
     eighths as a prior (warning ``beats_halved``). The mends below then work on beats: at the
     eighth level "half a beat" would be a sixteenth (an eighth grid that slid by one eighth is,
     once halved, a half-beat slip the slip mend puts back).
@@ -75,6 +75,7 @@ import numpy as np
 from dancegraph.errors import AudioError, ModelFileError
 from dancegraph.music import barpointer
 from dancegraph.music.bargroup import (
+    bar_clarity,
     beat_features,
     downbeat_evidence,
     fold_contrast,
@@ -457,32 +458,44 @@ def mend_off_beat_grid(
 
 def half_beat_parity(
     times: np.ndarray,
-    beat_activation: np.ndarray,
+    act: np.ndarray,
     onset_env: np.ndarray,
+    bass_onset: np.ndarray,
     chroma: np.ndarray,
     snare_onset: np.ndarray,
 ) -> float:
     """Which half of a grid at twice the tactus holds the beats: > 0 the even beats (0, 2, ...),
     < 0 the odd ones.
 
-    Three cues, each the even beats against the odd ones in z-units, summed with equal weight:
-    where the notes start (minus the even beats' :func:`off_beat_score`: pitched onsets and
-    onset strength), BeatNet's own beat activation (T,) (it fires harder on the beats than on
-    the eighths between them, even where its decoder counted both) and the noise onsets in the
-    snare band (T,) (backbeat snares and claps fall on beats; see :func:`_spectral`). Any one
-    of them can mislead: a syncopated part puts the notes on the eighths between the beats,
-    and a song without drums has no snare. On 40 generated songs halved from twice their tempo
-    the notes alone chose the right half on 31, the three together on 37 (17 songs of the
-    bench's seed sets: 13 -> 16; 23 fresh slow songs: 18 -> 21). ``times`` (K,) s; the curves
+    Four cues, each the even beats against the odd ones, summed with equal weight: where the
+    notes start (minus the even beats' :func:`off_beat_score`: pitched onsets and onset
+    strength), BeatNet's own beat activation (``act[:, 0]``; it fires harder on the beats than
+    on the eighths between them, even where its decoder counted both) and the noise onsets in
+    the snare band (backbeat snares and claps fall on beats; see :func:`_spectral`), these two
+    in z-units, and how clearly each half forms bars
+    (:func:`~dancegraph.music.bargroup.bar_clarity`: downbeat activation, harmony and backbeat
+    mark the bars of the beats, not of the eighths between them). Any one of them can mislead:
+    a syncopated part puts the notes on the eighths between the beats, off-beat hi-hats pull
+    the network there, a song without drums has no snare. On 40 generated songs halved from
+    twice their tempo the notes alone chose the right half on 31, the first three together on
+    37 (17 songs of the bench's seed sets: 13 -> 16; 23 fresh slow songs: 18 -> 21); on 61
+    halved songs (2026-11-30) the four chose right on 55, the first three on 53 (right now:
+    four-on-the-floor songs whose off-beat hi-hats and chords led the notes and the network,
+    17025, 21022, 31019, and two slow waltzes; wrong now: three hard songs with off-beat drums,
+    a syncopated bass and anticipated chords). ``times`` (K,) s; ``act`` (T, 2) and the curves
     at 50 fps.
     """
     t = np.asarray(times, dtype=np.float64)
     frames = np.round(t * FPS)
     parity = -off_beat_score(t[0::2], onset_env, chroma)
-    for curve in (beat_activation, snare_onset):
+    for curve in (act[:, 0], snare_onset):
         peaks = zscore(peak_near(curve, frames))
         parity += float(peaks[0::2].mean() - peaks[1::2].mean())
-    return parity
+    clarity = [
+        bar_clarity(act, frames[k::2].astype(np.int64), onset_env, bass_onset, chroma, snare_onset)
+        for k in (0, 1)
+    ]
+    return parity + clarity[0] - clarity[1]
 
 
 def mend_half_beat_slips(
@@ -892,7 +905,7 @@ def track_beats(
                 if halve:
                     # the beats are the half the notes start on (the other half: the "and"s)
                     parity = half_beat_parity(
-                        times, act[:, 0], onset_env, spec.chroma, spec.snare_onset
+                        times, act, onset_env, spec.bass_onset, spec.chroma, spec.snare_onset
                     )
                     keep = np.arange(len(times)) % 2 == (0 if parity >= 0 else 1)
                     times, positions, meters = times[keep], positions[keep], meters[keep]

@@ -361,7 +361,8 @@ def test_within_sound_keeps_the_beats_between_the_first_and_last_onset() -> None
 def test_half_beat_parity_weighs_the_network_and_the_snare_with_the_notes() -> None:
     """Which half of an eighth-note grid holds the beats: where the network's beat activation
     and the snare-band noise onsets peak, even against notes slightly on the other half; with
-    no network or snare contrast (a flat activation, a song without drums) the notes decide."""
+    no network or snare contrast (a flat activation, a song without drums) the notes decide.
+    (No downbeat activation or harmony here: neither half forms clearer bars.)"""
     fps = 50
     eighths = np.arange(64) * 0.24 + 0.5  # 125 BPM eighths, s (12 frames apart)
     n = int(eighths[-1] * fps) + 50
@@ -372,14 +373,35 @@ def test_half_beat_parity_weighs_the_network_and_the_snare_with_the_notes() -> N
         c[frames[0::2]], c[frames[1::2]] = even, odd
         return c
 
-    chroma = np.zeros((12, n))
+    def act(even: float, odd: float) -> np.ndarray:
+        return np.stack([curve(even, odd), np.full(n, 0.1)], axis=1)
+
+    chroma, bass = np.zeros((12, n)), np.zeros(n)
     same, silent = curve(1.0, 1.0), np.zeros(n)
-    assert half_beat_parity(eighths, curve(0.3, 0.9), same, chroma, curve(0.0, 1.0)) < 0
-    assert half_beat_parity(eighths, curve(0.9, 0.3), same, chroma, curve(1.0, 0.0)) > 0
+
+    def parity(beat: np.ndarray, notes: np.ndarray, snare: np.ndarray) -> float:
+        return half_beat_parity(eighths, beat, notes, bass, chroma, snare)
+
+    assert parity(act(0.3, 0.9), same, curve(0.0, 1.0)) < 0
+    assert parity(act(0.9, 0.3), same, curve(1.0, 0.0)) > 0
     notes_even = curve(1.0, 0.9)
-    assert half_beat_parity(eighths, curve(0.3, 0.9), notes_even, chroma, curve(0, 1)) < 0
-    assert half_beat_parity(eighths, same, notes_even, chroma, silent) > 0
-    assert half_beat_parity(eighths, same, curve(0.9, 1.0), chroma, silent) < 0
+    assert parity(act(0.3, 0.9), notes_even, curve(0, 1)) < 0
+    assert parity(act(1.0, 1.0), notes_even, silent) > 0
+    assert parity(act(1.0, 1.0), curve(0.9, 1.0), silent) < 0
+
+
+@pytest.mark.parametrize("seed,tempo", [(17025, 70.0), (31019, None)])
+def test_halving_keeps_the_half_that_forms_bars(seed: int, tempo: float | None) -> None:
+    """69-78 BPM four-on-the-floor songs tracked at twice their tempo: off-beat hi-hats and
+    chords put the notes and the network's beat activation on the eighths between the beats
+    (the kept half was the off-beats: beat F 0.00); the beats form the clearer bars."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beats_halved") for w in res.warnings)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
 
 
 def test_snare_curve_hears_noise_bursts_not_notes() -> None:
