@@ -13,7 +13,9 @@ songs (``--tempo-range 70 95``: normal 17000-17029, hard 16000-16059) and fast o
 grids (``beats_split``) was then checked on normal 21000-21029, hard 20000-20039 and, at 150-180
 BPM, normal 23000-23029 and hard 22000-22029. The split of fast waltzes counted at half tempo
 was checked on 3/4 songs drawn for it (``--meter 3``): normal 28000-28029 and hard 28100-28119
-at 150-180 BPM, normal 29000-29029 and hard 29100-29119 at 70-95 BPM.
+at 150-180 BPM, normal 29000-29029 and hard 29100-29119 at 70-95 BPM; the backbeat term of the
+bar grouping was then checked on hard 30000-30039, normal 31000-31029 and (150-180 BPM) hard
+32000-32029.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
