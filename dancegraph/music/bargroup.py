@@ -76,7 +76,8 @@ new one has no 2- or 6-beat bar where the old one had two and one). The half-tem
 backbeat: its threshold was measured so (with it, at 1.0, two right splits were lost and a
 wrong one made).
 
-``metricon`` 0.1.0 (MIT) decoding the same activations gets the hard downbeats no better than our own decoder (F 0.48 on 24 hard songs): it was not adopted.
+``metricon`` 0.1.0 (MIT) decoding the same activations gets the hard downbeats no better than
+our own decoder (F 0.48 on 24 hard songs): it was not adopted.
 """
 
 from __future__ import annotations

@@ -8,10 +8,11 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   - twice the tactus, decided first, on the decoder's grid: when nothing sounds between the
     tracked beats (:func:`subdivision_strength`) they are the music's eighths; every other beat
     is kept, the half that the notes, BeatNet's beat activation and the snare-band noise onsets
-    prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter is regrouped without the decoder's count of
-    eighths as a prior (warning ``beats_halved``). The mends below then work on beats: at the
-    eighth level "half a beat" would be a sixteenth (an eighth grid that slid by one eighth is,
-    once halved, a half-beat slip the slip mend puts back).
+    prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter is
+    regrouped without the decoder's count of eighths as a prior (warning ``beats_halved``). The
+    mends below then work on beats: at the eighth level "half a beat" would be a sixteenth (an
+    eighth grid that slid by one eighth is, once halved, a half-beat slip the slip mend puts
+    back).
   - swung off-beats: a grid on the swung off-beats (the next onset comes before the middle of
     its beat, which swing never does), or a section between slips that sits there while the
     rest of the grid swings the other way, is moved onto the beat
@@ -30,7 +31,8 @@ Method (``method='auto'``, BeatNet when its weights are installed):
     chords do not. At beats a mend moved, BeatNet's downbeat activation (about its own grid)
     is left out and the harmony decides.
   - half the tactus: a grid under ``SPLIT['max_bpm']`` with something sounding between its
-    beats (in the middle: swung eighths there are a slow song's), grouped in 2-beat bars (whose two beats the bar grouping found alike) or in 4-beat
+    beats (in the middle: swung eighths there are a slow song's), grouped in 2-beat bars
+    (whose two beats the bar grouping found alike) or in 4-beat
     bars whose third beat is marked almost as strongly as their first
     (:func:`~dancegraph.music.bargroup.half_bar_contrast` under ``SPLIT['max_contrast']``),
     counts the half notes of a fast song: every beat interval is split in two
@@ -482,8 +484,8 @@ def half_beat_parity(
     halved songs (2026-11-30) the four chose right on 55, the first three on 53 (right now:
     four-on-the-floor songs whose off-beat hi-hats and chords led the notes and the network,
     17025, 21022, 31019, and two slow waltzes; wrong now: three hard songs with off-beat drums,
-    a syncopated bass and anticipated chords). ``times`` (K,) s; ``act`` (T, 2) and the curves
-    at 50 fps.
+    a syncopated bass and anticipated chords, 16029, 16055, 25007). ``times`` (K,) s; ``act``
+    (T, 2) and the curves at 50 fps.
     """
     t = np.asarray(times, dtype=np.float64)
     frames = np.round(t * FPS)
