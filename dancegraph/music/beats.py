@@ -365,13 +365,10 @@ def split_beats(
     split grid (the inserted beats are its 2nd and 4th); 3, a tracked bar holds two 3-beat bars,
     the second starting half-way through its second beat."""
     times = np.asarray(times, dtype=np.float64)
-    per_bar = 3 if meter == 3 else 4
     out = np.empty(2 * len(times) - 1)
     out[0::2], out[1::2] = times, (times[:-1] + times[1:]) / 2
-    pos = np.empty(len(out), dtype=np.int64)
-    pos[0::2] = (2 * (np.asarray(positions) - 1)) % per_bar + 1
-    pos[1::2] = pos[0:-1:2] % per_bar + 1
-    return out, pos
+    per_bar = 3 if meter == 3 else 4
+    return out, _split_cycle(positions) % per_bar + 1
 
 
 def _split_cycle(positions: np.ndarray) -> np.ndarray:
