@@ -28,6 +28,13 @@ Metrics (generated set, each song written as WAV and analysed from the file by `
 - "structure on true bars": boundary F / repeats alike with the generator's bars given, i.e. the
   structure stage alone;
 - CPU seconds per minute of audio (``time.process_time``, warm: after one song analysed).
+
+Stability on the CC recordings (real music, no annotations; ``--stability``): each recording is
+analysed again after a change a listener would not notice — its first 0.73 s or first 10 s cut,
+18 dB quieter, resampled to 16 or 48 kHz, through MP3 at 128 kb/s — and the beats and downbeats
+are compared with the original's (F at ±70 ms, after the cut's offset, beats in the first second
+of either left out) with tempo, meter and bar count. A tracker built for the generator alone
+would drift here.
 """
 
 from __future__ import annotations
@@ -40,10 +47,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import soundfile as sf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from dancegraph.music.analysis import analyze, four_beat_bars, phrase_unit  # noqa: E402
+from dancegraph.music.decode import load_audio, resample  # noqa: E402
 from dancegraph.music.features import frame_features  # noqa: E402
 from dancegraph.music.generator import bar_grid, generate_song, write_song  # noqa: E402
 from dancegraph.music.structure import analyze_structure  # noqa: E402
@@ -217,10 +226,9 @@ def summarise(rows: list[dict]) -> None:
 
 
 def run_cc() -> None:
-    cc = shared_dir() / "datasets" / "music" / "cc"
-    files = sorted(cc.glob("*.ogg")) if cc.is_dir() else []
+    files = _cc_files()
     if not files:
-        print("\nCC tracks: not found at", cc)
+        print("\nCC tracks: not found under", shared_dir() / "datasets" / "music")
         return
     print(
         f"\n{'CC track':<44} {'dur':>6} {'BPM':>6} {'conf':>5} {'meter':>5} {'bars':>5} {'phrases':>7}  form / phrase lengths   CPU s/min"
@@ -241,6 +249,46 @@ def run_cc() -> None:
         )
         if a.warnings:
             print(f"{'':<44} warnings: {'; '.join(a.warnings)}")
+
+
+def _cc_files() -> list[Path]:
+    cc = shared_dir() / "datasets" / "music" / "cc"
+    return sorted(cc.glob("*.ogg")) if cc.is_dir() else []
+
+
+def _after(times: np.ndarray, cut: float) -> np.ndarray:
+    return times[times >= cut + 1.0]
+
+
+def run_cc_stability(tmp: Path) -> None:
+    """The CC recordings re-analysed after inaudible changes, against the original analysis."""
+    print(
+        f"\n{'CC track (stability)':<32} {'variant':<10} {'beat F':>6} {'down F':>6}"
+        f" {'BPM':>6} {'meter':>5} {'bars':>5}"
+    )
+    for f in _cc_files():
+        y, sr = load_audio(f)
+        base = analyze(y, sr)
+        mp3 = tmp / f"{f.stem}.mp3"
+        sf.write(mp3, y, sr, format="MP3", subtype="MPEG_LAYER_III")  # 128 kb/s by default
+        variants = {
+            "original": (base, 0.0),
+            "cut 0.73s": (analyze(y[int(0.73 * sr) :], sr), 0.73),
+            "cut 10s": (analyze(y[int(10 * sr) :], sr), 10.0),
+            "-18 dB": (analyze(y * np.float32(10 ** (-18 / 20)), sr), 0.0),
+            "16 kHz": (analyze(resample(y, sr, 16_000), 16_000), 0.0),
+            "48 kHz": (analyze(resample(y, sr, 48_000), 48_000), 0.0),
+            "mp3 128k": (analyze(mp3), 0.0),
+        }
+        for name, (a, cut) in variants.items():
+            # both sides from one second after the cut: a tracker needs a beat or two to lock on
+            beat_f = f_measure(_after(a.beats + cut, cut), _after(base.beats, cut), 0.07)
+            down_f = f_measure(_after(a.downbeats + cut, cut), _after(base.downbeats, cut), 0.07)
+            print(
+                f"{f.name[:32]:<32} {name:<10} {beat_f:6.3f} {down_f:6.3f} {a.tempo_bpm:6.1f}"
+                f" {a.meter:>5} {a.n_bars:>5}",
+                flush=True,
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -264,15 +312,22 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--meter", type=int, choices=(3, 4), help="pin every song's meter")
     ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
+    ap.add_argument(
+        "--stability",
+        action="store_true",
+        help="also re-analyse the CC recordings after inaudible changes (about 1 minute)",
+    )
     args = ap.parse_args(argv)
     tempo_range = tuple(args.tempo_range) if args.tempo_range else None
     with tempfile.TemporaryDirectory() as tmp:
         rows = run_generated(
             args.songs, args.hard, Path(tmp), tuple(args.seed_base), tempo_range, args.meter
         )
-    summarise(rows)
-    if not args.no_cc:
-        run_cc()
+        summarise(rows)
+        if not args.no_cc:
+            run_cc()
+            if args.stability:
+                run_cc_stability(Path(tmp))
     return 0
 
 

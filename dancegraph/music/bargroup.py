@@ -10,8 +10,9 @@ tracked beats (K beats, 50 fps frame indices) with two kinds of evidence:
   (onset strength and bass onset in 4 sub-beat slots, chroma over the beat), and the mean
   distance between beats ``L`` apart. Music repeats itself at the bar (rhythm patterns, chord
   per bar, melodic motifs), so the distance is lowest at multiples of the bar length: the meter
-  whose lags (3, 6 against 4, 8 beats) are clearly closer (:data:`METER_MARGIN`) wins over the
-  network's choice. It needs no accent on the downbeat at all.
+  whose lags (3, 6 against 4, 8 beats; the chroma at 6 and 8 only, see :func:`meter_distances`)
+  are clearly closer (:data:`METER_MARGIN`) wins over the network's choice. It needs no accent
+  on the downbeat at all.
 - Bar phase from a beat-level bar-pointer model (Viterbi over "position in the bar" states,
   one meter): per beat the downbeat evidence is BeatNet's downbeat logit plus
   :data:`HARMONY_WEIGHT` times the harmonic change into the beat (chroma above the bass, first
@@ -204,12 +205,20 @@ def beat_features(
 
 
 def meter_distances(x: np.ndarray) -> dict[int, float]:
-    """Bar-length self-similarity of per-beat features ``x`` (K, F): for meters 3 and 4 the mean
-    Euclidean distance between beats one and two bars apart (lags 3, 6 and 4, 8). Lower = the
-    music repeats at that bar length. NaN when the song is too short (under 4 bars of 4)."""
+    """Bar-length self-similarity of per-beat features ``x`` (K, F) from :func:`beat_features`
+    (its last 12 columns the chroma): for meters 3 and 4 the mean Euclidean distance between
+    beats one and two bars apart (lags 3, 6 and 4, 8). Lower = the music repeats at that bar
+    length. NaN when the song is too short (under 4 bars of 4).
+
+    The chroma counts at the two-bar lags only. With a chord per bar, beats one lag apart share
+    the chord more often the shorter the lag (lag 3 in 4/4: a quarter of the pairs in one bar;
+    lag 4: none), so at one bar the chroma of 4/4 music favours 3; at 6 and 8 beats every pair
+    crosses a bar line in either meter (a 4/4 song regrouped into 3 on its chords alone:
+    generated seed 34024)."""
+    rhythm = x[:, :-12]
     return {
-        3: (lag_distance(x, 3) + lag_distance(x, 6)) / 2,
-        4: (lag_distance(x, 4) + lag_distance(x, 8)) / 2,
+        3: (lag_distance(rhythm, 3) + lag_distance(x, 6)) / 2,
+        4: (lag_distance(rhythm, 4) + lag_distance(x, 8)) / 2,
     }
 
 
