@@ -185,7 +185,7 @@ SLIP = {
     "min": 0.3,  # phase change over 2 * window beats, in beats, that counts as a slip ...
     "max": 0.7,  # ... up to this
     "same_tempo": 0.04,  # relative tempo difference allowed before/after (else a tempo change)
-    "context": 33,  # beats of the running median interval the phase drift is measured against
+    "context": 33,  # beats of the running interval the phase drift is measured against
     "agree_margin": 0.2,  # F-measure by which the other tracker must prefer the moved beats
     "same_level": (0.8, 1.25),  # its median interval / the section's, to count as a vote
     "min_gain": 0.2,  # or the section's mean off-beat gain (a slip bounds it: less than a grid)
@@ -579,14 +579,21 @@ def mend_half_beat_slips(
 def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where a beat grid slips by a fraction of a beat at a steady tempo.
 
-    Slips are found in the grid's phase drift against the running median interval
+    Slips are found in the grid's phase drift against the running interquartile mean interval
     (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over
-    ``2 * SLIP['window']`` beats with the same tempo before and after. ``times`` (K,) s.
+    ``2 * SLIP['window']`` beats with the same tempo before and after. The decoder's beats lie
+    on 20 ms frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their
+    median (17) is 2.5 % short and the drift against it grows by a quarter beat every ten beats:
+    false slips in a steady grid (the decoder's grids of 235 generated normal songs, beat F
+    >= 0.97: 14 with a slip, 4 with the interquartile mean, which keeps the fraction and still
+    ignores the slip's own odd intervals; on 1180 songs downbeat F hard 0.885 -> 0.892).
+    ``times`` (K,) s.
     Returns (centres, splits), int arrays (S,): per slip the beat at the centre of the window
     it was measured over, and the beat after the window's most irregular interval (where the
     grid jumped: the first beat of the new section).
     """
-    from scipy.ndimage import median_filter
+    from scipy.ndimage import generic_filter
+    from scipy.stats import trim_mean
 
     t = np.asarray(times, dtype=np.float64)
     w = SLIP["window"]
@@ -595,7 +602,7 @@ def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if len(t) < 4 * w + 2:
         return np.asarray(centres, dtype=np.int64), np.asarray(splits, dtype=np.int64)
     ibi = np.diff(t)
-    local = median_filter(ibi, size=SLIP["context"], mode="nearest")
+    local = generic_filter(ibi, lambda v: trim_mean(v, 0.25), SLIP["context"], mode="nearest")
     drift = np.r_[0.0, np.cumsum(ibi / local - 1.0)]  # (K,) beats the grid has slipped by
     k = w
     while k < len(t) - w:

@@ -629,6 +629,37 @@ def test_swung_off_beat_section_is_moved_where_the_rest_swings() -> None:
     assert shift == 0.0 and np.array_equal(kept, grid)
 
 
+def test_find_slips_ignores_the_frame_rounding_of_a_fast_grid() -> None:
+    """A steady 172 BPM grid on 20 ms frames (17.44 frames a beat, some beats a frame early or
+    late) has no slip; the running median interval (17 frames) found 1-4 in each; a real
+    half-beat slip at beat 100 is found once, there."""
+    period = 17.44
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        frames = np.round(np.arange(200) * period + rng.choice([-1, 0, 0, 0, 0, 0, 1], 200))
+        grid = frames / 50.0
+        assert len(find_slips(grid)[0]) == 0
+        slipped = np.r_[grid[:100], grid[100:] + np.round(period / 2) / 50.0]
+        centres, splits = find_slips(slipped)
+        assert len(centres) == 1 and abs(int(splits[0]) - 100) <= 4
+
+
+@pytest.mark.parametrize(
+    "seed,hard,tempo", [(31011, False, None), (24002, False, None), (22001, True, 167.0)]
+)
+def test_songs_whose_frame_rounded_grid_looked_slipped(
+    seed: int, hard: bool, tempo: float | None
+) -> None:
+    """Songs whose false slips (see the test above) had sections moved half a beat or kept a
+    swing mend section by section from seeing the whole grid: downbeat F 0.74, 0.78, 0.82."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, hard=hard, tempo_bpm=tempo)
+    res = track_beats(song.y, song.sr)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
 def test_slow_swung_song_with_sections_on_the_off_beats_is_mended() -> None:
     """83 BPM 3/4 song swung at 0.14: BeatNet puts its first 39 beats on the swung off-beats
     and then comes back; the whole-grid swing test saw no swing (beat F 0.67). The section is
