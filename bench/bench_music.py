@@ -20,6 +20,8 @@ bar grouping was then checked on hard 30000-30039, normal 31000-31029 and (150-1
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
 - meter accuracy: tracked meter == generated meter;
+- tempo %: median relative error of the reported tempo, at the metrical level (x1, x2, x1/2)
+  nearest the generated one (songs more than 6 % off at every level left out);
 - boundary F: inner phrase boundaries at ±3 s against the generated section starts;
 - repeats alike: share of pairs of same-label sections whose (majority) labels agree;
   distinct apart: share of pairs of different-label sections whose labels differ;
@@ -78,6 +80,13 @@ def f_measure(est, ref, tol: float) -> float:
             hit += 1
     p, r = hit / len(est), hit / len(ref)
     return 0.0 if hit == 0 else 2 * p * r / (p + r)
+
+
+def tempo_error(est_bpm: float, true_bpm: float) -> float:
+    """Relative error of a tempo at the metrical level nearest to the truth's (x1, x2 or x1/2:
+    a tracker may count either; the level is scored by downbeat F), NaN beyond 6 %."""
+    err = min(abs(est_bpm / (true_bpm * level) - 1.0) for level in (1.0, 2.0, 0.5))
+    return err if err <= 0.06 else float("nan")
 
 
 def label_agreement(
@@ -168,6 +177,7 @@ def run_generated(
                 "bpm": tr["tempo_bpm"],
                 "meter": tr["meter"],
                 "est_bpm": a.tempo_bpm,
+                "tempo_err": tempo_error(a.tempo_bpm, tr["tempo_bpm"]),
                 "est_meter": a.meter,
                 "dur": song.duration_s,
                 "beat_f": f_measure(a.beats, tr["beats"], 0.07),
@@ -199,10 +209,15 @@ def _mean(xs) -> float:
     return float(np.mean(xs)) if xs else float("nan")
 
 
+def _median_tempo_error(rows: list[dict]) -> float:
+    errs = [r["tempo_err"] for r in rows if np.isfinite(r["tempo_err"])]
+    return 100 * statistics.median(errs) if errs else float("nan")
+
+
 def summarise(rows: list[dict]) -> None:
     print()
     print(
-        f"{'set':<8} {'songs':>5} {'beat F':>7} {'down F':>7} {'meter':>6} {'bound F':>8} {'alike':>6} {'apart':>6}"
+        f"{'set':<8} {'songs':>5} {'beat F':>7} {'down F':>7} {'meter':>6} {'tempo %':>8} {'bound F':>8} {'alike':>6} {'apart':>6}"
         f" {'bF true':>8} {'alike true':>10} {'sig top3':>9} {'CPU s/min':>10}"
     )
     for name, sel in (
@@ -214,7 +229,8 @@ def summarise(rows: list[dict]) -> None:
             continue
         print(
             f"{name:<8} {len(sel):>5} {_mean(r['beat_f'] for r in sel):7.3f} {_mean(r['down_f'] for r in sel):7.3f}"
-            f" {_mean(r['meter'] == r['est_meter'] for r in sel):6.2f} {_mean(r['bound_f'] for r in sel):8.3f}"
+            f" {_mean(r['meter'] == r['est_meter'] for r in sel):6.2f} {_median_tempo_error(sel):8.2f}"
+            f" {_mean(r['bound_f'] for r in sel):8.3f}"
             f" {_mean(x for r in sel for x in r['alike']):6.3f} {_mean(x for r in sel for x in r['apart']):6.3f}"
             f" {_mean(r['true_bound_f'] for r in sel):8.3f} {_mean(x for r in sel for x in r['true_alike']):10.3f}"
             f" {_mean(x for r in sel for x in r['sig_top3']):9.3f} {statistics.median(r['cpu_per_min'] for r in sel):10.2f}"

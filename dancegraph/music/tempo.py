@@ -60,8 +60,12 @@ class TempoEstimate:
 def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
     """(tempo BPM, regularity 0..1) from beat times (K,) s.
 
-    The tempo is 60 / median inter-beat interval; regularity is the share of intervals within
-    10 % of the local median (robust to a few missed or extra beats and to slow drifts).
+    The tempo is 60 / the mean of the inter-beat intervals within 10 % of their median: the
+    median alone is robust to missed or extra beats but snaps to the decoder's 20 ms frames (a
+    172 BPM grid of 17- and 18-frame intervals read 176.5; on generated songs the error was
+    median 0.9 %, up to 2.8 %, now median 0.02 %, up to 0.6 %). Regularity is the share of
+    intervals within 10 % of the local median (robust to a few missed or extra beats and to
+    slow drifts).
     """
     beats = np.asarray(beats, dtype=np.float64)
     if len(beats) < 3:
@@ -70,12 +74,13 @@ def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
     med = float(np.median(ibi))
     if med <= 0:
         return 0.0, 0.0
+    mean = float(ibi[np.abs(ibi - med) <= 0.1 * med].mean())
     # local median over 9 intervals follows tempo drift and rubato
     k = 4
     padded = np.pad(ibi, k, mode="edge")
     local = np.array([np.median(padded[i : i + 2 * k + 1]) for i in range(len(ibi))])
     regular = np.abs(ibi - local) <= 0.1 * local
-    return 60.0 / med, float(regular.mean())
+    return 60.0 / mean, float(regular.mean())
 
 
 def metrical_relation(a_bpm: float, b_bpm: float, tol: float = 0.06) -> str | None:

@@ -858,6 +858,12 @@ def test_tempo_from_beats_and_relations() -> None:
     assert abs(bpm - 120) < 1e-6 and regularity == 1.0
     jittered = beats + np.random.default_rng(0).normal(0, 0.01, len(beats))
     assert tempo_from_beats(jittered)[1] > 0.8
+    # beats on 20 ms frames at 172 BPM: intervals of 17 and 18 frames (their median: 176.5 BPM);
+    # a few missed beats and a stray one do not move it either
+    frames = np.round(np.arange(300) * 50 * 60 / 172.0)
+    assert abs(tempo_from_beats(frames / 50)[0] - 172.0) < 0.1
+    gappy = np.sort(np.r_[np.delete(frames, [40, 41, 150, 220]), frames[100] + 8] / 50)
+    assert abs(tempo_from_beats(gappy)[0] - 172.0) < 0.2
     assert metrical_relation(120, 240) == "x2"
     assert metrical_relation(120, 60) == "x1/2"
     assert metrical_relation(120, 180) == "x3/2"
