@@ -15,7 +15,11 @@ BPM, normal 23000-23029 and hard 22000-22029. The split of fast waltzes counted 
 was checked on 3/4 songs drawn for it (``--meter 3``): normal 28000-28029 and hard 28100-28119
 at 150-180 BPM, normal 29000-29029 and hard 29100-29119 at 70-95 BPM; the backbeat term of the
 bar grouping was then checked on hard 30000-30039, normal 31000-31029 and (150-180 BPM) hard
-32000-32029.
+32000-32029. Drawn before the next changes (2026-11-30, night): normal 34000-34029, hard
+33000-33039, hard 35000-35029 (150-180 BPM) and 36000-36029 (70-95 BPM), where the meter test's
+chroma at one-bar lags showed (34024); the slip finder's interquartile mean was then checked
+on hard 37000-37039, hard 38000-38029 (150-180), normal 39000-39029 (150-180) and hard
+40000-40029 (70-95).
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
