@@ -57,7 +57,12 @@ import soundfile as sf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from dancegraph.music.analysis import analyze, four_beat_bars, phrase_unit  # noqa: E402
+from dancegraph.music.analysis import (  # noqa: E402
+    MusicAnalysis,
+    analyze,
+    four_beat_bars,
+    phrase_unit,
+)
 from dancegraph.music.decode import load_audio, resample  # noqa: E402
 from dancegraph.music.features import frame_features  # noqa: E402
 from dancegraph.music.generator import bar_grid, generate_song, write_song  # noqa: E402
@@ -245,11 +250,13 @@ def summarise(rows: list[dict]) -> None:
     )
 
 
-def run_cc() -> None:
+def run_cc() -> dict[Path, MusicAnalysis]:
+    """Analyse and print the CC recordings; returns the analyses by file."""
     files = _cc_files()
+    analyses: dict[Path, MusicAnalysis] = {}
     if not files:
         print("\nCC tracks: not found under", shared_dir() / "datasets" / "music")
-        return
+        return analyses
     print(
         f"\n{'CC track':<44} {'dur':>6} {'BPM':>6} {'conf':>5} {'meter':>5} {'bars':>5} {'phrases':>7}  form / phrase lengths   CPU s/min"
     )
@@ -261,6 +268,7 @@ def run_cc() -> None:
             print(f"{f.name[:44]:<44} error: {exc}")
             continue
         cpu = time.process_time() - t0
+        analyses[f] = a
         lens = ",".join(str(p["end_bar"] - p["start_bar"]) for p in a.phrases)
         form = "".join(p["label"] for p in a.phrases)
         print(
@@ -269,6 +277,7 @@ def run_cc() -> None:
         )
         if a.warnings:
             print(f"{'':<44} warnings: {'; '.join(a.warnings)}")
+    return analyses
 
 
 def _cc_files() -> list[Path]:
@@ -280,15 +289,15 @@ def _after(times: np.ndarray, cut: float) -> np.ndarray:
     return times[times >= cut + 1.0]
 
 
-def run_cc_stability(tmp: Path) -> None:
-    """The CC recordings re-analysed after inaudible changes, against the original analysis."""
+def run_cc_stability(tmp: Path, originals: dict[Path, MusicAnalysis]) -> None:
+    """The CC recordings re-analysed after inaudible changes, against their ``originals`` (the
+    analyses of :func:`run_cc`; decoding the file or analysing its samples gives the same)."""
     print(
         f"\n{'CC track (stability)':<32} {'variant':<10} {'beat F':>6} {'down F':>6}"
         f" {'BPM':>6} {'meter':>5} {'bars':>5}"
     )
-    for f in _cc_files():
+    for f, base in originals.items():
         y, sr = load_audio(f)
-        base = analyze(y, sr)
         mp3 = tmp / f"{f.stem}.mp3"
         sf.write(mp3, y, sr, format="MP3", subtype="MPEG_LAYER_III")  # 128 kb/s by default
         variants = {
@@ -345,9 +354,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         summarise(rows)
         if not args.no_cc:
-            run_cc()
+            originals = run_cc()
             if args.stability:
-                run_cc_stability(Path(tmp))
+                run_cc_stability(Path(tmp), originals)
     return 0
 
 
