@@ -19,7 +19,8 @@ bar grouping was then checked on hard 30000-30039, normal 31000-31029 and (150-1
 33000-33039, hard 35000-35029 (150-180 BPM) and 36000-36029 (70-95 BPM), where the meter test's
 chroma at one-bar lags showed (34024); the slip finder's interquartile mean was then checked
 on hard 37000-37039, hard 38000-38029 (150-180), normal 39000-39029 (150-180) and hard
-40000-40029 (70-95).
+40000-40029 (70-95). Drawn before the dotted-pulse re-decode was checked on them (2026-11-30,
+late): hard 41000-41079, 42000-42039 (70-95), 44000-44039 (150-180), normal 43000-43039.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 __all__ = [
     "DANCE_PRIOR",
@@ -76,9 +77,7 @@ def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
         return 0.0, 0.0
     mean = float(ibi[np.abs(ibi - med) <= 0.1 * med].mean())
     # local median over 9 intervals follows tempo drift and rubato
-    k = 4
-    padded = np.pad(ibi, k, mode="edge")
-    local = np.array([np.median(padded[i : i + 2 * k + 1]) for i in range(len(ibi))])
+    local = median_filter(ibi, 9, mode="nearest")
     regular = np.abs(ibi - local) <= 0.1 * local
     return 60.0 / mean, float(regular.mean())
 

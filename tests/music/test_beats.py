@@ -18,6 +18,7 @@ from dancegraph.music.beats import (
     SLIP,
     _spectral,
     beat_f_measure,
+    dotted_pulse,
     find_slips,
     half_beat_parity,
     mend_half_beat_slips,
@@ -423,6 +424,30 @@ def test_four_four_song_counted_in_three_is_regrouped_with_less_margin() -> None
     res = track_beats(song.y, song.sr)
     assert res.meter == 4 and any(w.startswith("meter_regrouped") for w in res.warnings)
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+@pytest.mark.parametrize("seed,bpm", [(30027, 121.3), (33002, 73.7)])
+def test_grid_on_a_dotted_pulse_is_decoded_again_at_the_song_s(seed: int, bpm: float) -> None:
+    """Hard songs the decoder tracked at 3:2 of their tempo (30027: 91.9 BPM for 121.3, downbeat
+    F 0.11; 33002: 110.6 for 73.7, 0.00) while their onsets repeat 2-2.5 times as strongly at
+    the x2/3 level: decoded again there (30027 at its double, the likelier path)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, hard=True)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_level_corrected") for w in res.warnings)
+    assert abs(res.tempo_bpm / bpm - 1.0) < 0.01 and res.meter == 4
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def test_dotted_pulse_only_where_the_onsets_repeat_at_3_to_2() -> None:
+    """An onset train pulsing at 80 BPM tracked at 120 BPM (every 2:3 of its pulse): the pulse
+    is named; tracked at its own 80 BPM or at 160 BPM (a subdivision): None."""
+    env = np.zeros(3000)
+    env[:: int(60 * 50.0 / 80)] = 1.0
+    assert dotted_pulse(np.arange(0, 60, 0.5), env) == pytest.approx(80.0)
+    assert dotted_pulse(np.arange(0, 60, 0.75), env) is None
+    assert dotted_pulse(np.arange(0, 60, 0.375), env) is None
 
 
 def test_harmony_above_the_bass_finds_the_bar_under_misleading_accents() -> None:
