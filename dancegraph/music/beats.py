@@ -93,7 +93,12 @@ from dancegraph.music.bargroup import (
     zscore,
 )
 from dancegraph.music.decode import DEFAULT_MAX_SECONDS, resample
-from dancegraph.music.tempo import estimate_tempo, metrical_relation, pulse_salience
+from dancegraph.music.tempo import (
+    estimate_tempo,
+    metrical_relation,
+    pulse_salience,
+    tempo_from_beats,
+)
 
 __all__ = [
     "DOTTED",
@@ -960,17 +965,17 @@ def track_beats(
                     if _usable(redecoded.times, act, onset_env, dict(evidence), "beatnet")[0]:
                         warnings.append(
                             f"beat_level_corrected: the tracked beat at "
-                            f"{60.0 / float(np.median(np.diff(times))):.1f} BPM was a dotted "
+                            f"{tempo_from_beats(times)[0]:.1f} BPM was a dotted "
                             f"pulse (3:2) of the song's, whose onsets repeat at {pulse:.1f} BPM; "
                             f"decoded again at that level or its double: "
-                            f"{60.0 / float(np.median(np.diff(redecoded.times))):.1f} BPM"
+                            f"{tempo_from_beats(redecoded.times)[0]:.1f} BPM"
                         )
                         dec = redecoded
                         times, positions, meters = dec.times, dec.positions, dec.meters
                 lib = _librosa_beats(spec)
                 # the metrical level first: a grid with nothing between its beats counts eighths
                 sub = subdivision_strength(onset_env, times)
-                half_bpm = 30.0 / float(np.median(np.diff(times)))
+                half_bpm = tempo_from_beats(times)[0] / 2
                 halve = sub < DOUBLE["max_subdivision"] and half_bpm >= DOUBLE["min_half_bpm"]
                 if halve:
                     # the beats are the half the notes start on (the other half: the "and"s)
@@ -1021,7 +1026,7 @@ def track_beats(
                 warnings.extend(notes)
                 # a slow grid whose bars hold two bars of the music counts the half notes of a
                 # fast song: every beat is split in two
-                bpm = 60.0 / float(np.median(np.diff(times)))
+                bpm = tempo_from_beats(times)[0]
                 per_bar = int(meters[0])
                 why = None
                 if bpm < SPLIT["max_bpm"] and (halve or sub >= DOUBLE["max_subdivision"]):
@@ -1066,11 +1071,8 @@ def track_beats(
     confidence = tempo.confidence
     if name == "beatnet" and lib is not None:
         agree = beat_f_measure(times, lib[0])
-        rel = (
-            metrical_relation(tempo.bpm, 60.0 / float(np.median(np.diff(lib[0]))))
-            if len(lib[0]) > 2
-            else None
-        )
+        # None where librosa found under 3 beats (no tempo)
+        rel = metrical_relation(tempo.bpm, tempo_from_beats(lib[0])[0])
         evidence["librosa_agreement"] = agree
         evidence["librosa_relation"] = rel
         # librosa at another metrical level still supports the pulse: half credit
@@ -1113,7 +1115,7 @@ def _usable(
     if n < NO_BEAT["min_beats"]:
         return False, f"{n} beats found"
     coverage = float(times[-1] - times[0]) / max(evidence["active_s"], 1e-9)
-    bpm, regularity = _regularity(times)
+    bpm, regularity = tempo_from_beats(times)
     evidence[f"{prefix}_coverage"] = coverage
     evidence[f"{prefix}_regularity"] = regularity
     curve = act.sum(axis=1) if act is not None else onset_env
@@ -1135,12 +1137,6 @@ def _usable(
     if regularity < NO_BEAT["min_regularity"]:
         return False, f"irregular beat intervals (regularity {regularity:.2f})"
     return True, ""
-
-
-def _regularity(times: np.ndarray) -> tuple[float, float]:
-    from dancegraph.music.tempo import tempo_from_beats
-
-    return tempo_from_beats(times)
 
 
 def warm_up() -> None:
