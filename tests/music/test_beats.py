@@ -24,6 +24,7 @@ from dancegraph.music.beats import (
     mend_half_beat_slips,
     mend_off_beat_grid,
     mend_swing_off_beats,
+    octave_switch,
     split_beats,
     subdivision_strength,
     track_beats,
@@ -448,6 +449,39 @@ def test_dotted_pulse_only_where_the_onsets_repeat_at_3_to_2() -> None:
     assert dotted_pulse(np.arange(0, 60, 0.5), env) == pytest.approx(80.0)
     assert dotted_pulse(np.arange(0, 60, 0.75), env) is None
     assert dotted_pulse(np.arange(0, 60, 0.375), env) is None
+
+
+@pytest.mark.parametrize(
+    "seed,hard,tempo", [(26024, False, 88.0), (16031, True, 87.0), (52010, False, 170.0)]
+)
+def test_grid_that_switches_tempo_octave_is_decoded_at_one_level(
+    seed: int, hard: bool, tempo: float
+) -> None:
+    """Songs whose decoded grid counted some sections at twice the tempo of others (26024: 88
+    BPM, later sections at 176, downbeat F 0.78; 16031: 87 and 174, 0.00; 52010: 170 with a
+    first part at 85, 0.44): decoded again at one level, one bar length all song long."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(seed, hard=hard, tempo_bpm=tempo)
+    res = track_beats(song.y, song.sr)
+    assert any(w.startswith("beat_level_unified") for w in res.warnings)
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+    intervals = np.diff(res.beats)
+    assert intervals.max() < 1.3 * np.median(intervals)
+
+
+def test_octave_switch_is_a_jump_not_a_glide() -> None:
+    """A grid at 88 BPM for 40 s, then 176 BPM for 40 s: a switch (the slower level named); the
+    same tempos joined by a 30 s ritardando, a steady grid, or a short fill at double tempo:
+    None."""
+    slow, fast = 60 / 88, 60 / 176
+    jump = np.cumsum(np.r_[np.full(59, slow), np.full(117, fast)])
+    assert octave_switch(jump) == pytest.approx(88.0, rel=0.01)
+    glide = np.cumsum(np.r_[np.full(40, fast), np.geomspace(fast, slow, 60), np.full(40, slow)])
+    assert octave_switch(glide) is None
+    assert octave_switch(np.arange(200) * slow) is None
+    fill = np.cumsum(np.r_[np.full(100, slow), np.full(16, fast), np.full(100, slow)])
+    assert octave_switch(fill) is None
 
 
 def test_harmony_above_the_bass_finds_the_bar_under_misleading_accents() -> None:
