@@ -484,6 +484,18 @@ def test_octave_switch_is_a_jump_not_a_glide() -> None:
     assert octave_switch(fill) is None
 
 
+def test_body_on_the_beat_does_not_give_way_to_its_outro_on_the_off_beats() -> None:
+    """A normal song whose last 23 beats the decoder put on the off-beats: its body's chords,
+    comped on the off-beats, give it an off-beat gain of 0.35 — under the body's margin, so the
+    outro moves, not the 189 beats of the body (downbeat F was 0.00)."""
+    from dancegraph.music.generator import generate_song
+
+    song = generate_song(43024)
+    res = track_beats(song.y, song.sr)
+    assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+    assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
+
+
 def test_harmony_above_the_bass_finds_the_bar_under_misleading_accents() -> None:
     """Hard 3/4 song, off-beat drums and a syncopated bass that anticipates the root: the
     network's downbeat sits on beat 3. The chords' change (chroma above 200 Hz, so the bass's
@@ -606,13 +618,18 @@ def test_mend_half_beat_slips_moves_an_intro_one_slip_from_the_body() -> None:
         else:
             assert moved == 0 and np.array_equal(mended, tracked)
     # the notes start on the body's beats, and on the intro's even more clearly: the body keeps
-    # the pulse and the intro moves; a body whose notes start after its beats moves instead
+    # the pulse and the intro moves; a body whose notes clearly start after its beats moves
+    # instead; one whose notes start only a little after them (chords comped on the off-beats)
+    # keeps the pulse
     intro = np.arange(len(truth)) < 16
-    for body_gain, intro_moves in ((-1.8, True), (0.5, False)):
+    clear, faint = 0.9, 0.4  # a generated body off the beat: 0.81-1.75; on it: up to 0.45
+    assert faint > SLIP["min_gain"] and faint < SLIP["body_min_gain"] < clear
+    for body_gain, intro_gain, intro_moves in ((-1.8, -2.1, True), (clear, 0.0, False),
+                                               (faint, 0.0, True)):  # fmt: skip
         tracked = truth.copy()
         tracked[:16] += period / 2
         tracked[16:20] += np.linspace(0.2, 0.05, 4)
-        gain = np.where(intro, -2.1 if intro_moves else 0.0, body_gain)
+        gain = np.where(intro, intro_gain, body_gain)
         mended, _ = mend_half_beat_slips(tracked, tracked, gain)
         intro_kept = np.isin(tracked[:14], mended).all()
         assert intro_kept != intro_moves
