@@ -219,7 +219,8 @@ SLIP = {
     "same_tempo": 0.04,  # relative tempo difference allowed before/after (else a tempo change)
     "context": 33,  # beats of the running interval the phase drift is measured against
     "agree_margin": 0.2,  # F-measure by which the other tracker must prefer the moved beats
-    "same_level": (0.8, 1.25),  # its median interval / the section's, to count as a vote
+    "same_level": (0.8, 1.25),  # its median interval / the section's, to count as a vote ...
+    "half_level": (1.6, 2.5),  # ... or at half the tempo (every other beat: F at most 2/3)
     "min_gain": 0.2,  # or the section's mean off-beat gain (a slip bounds it: less than a grid)
     "body_min_gain": 0.6,  # the body of a song gives way to its intro/outro only above this
     "side_margin": 0.2,  # ... where the two sides' mean gains differ by more than this
@@ -606,9 +607,14 @@ def mend_half_beat_slips(
     on one side of the slips — the side whose notes start more after its beats than the
     other's (mean ``gain`` (K,), :func:`off_beat_gain`) — are moved by half an interval, section
     by section, where an independent tracker's beats ``reference`` (s) at the same tempo there
-    (median interval ratio within ``SLIP['same_level']``: at half the tempo they match every
-    other beat of either grid) agree with the moved beats clearly better (F-measure at 70 ms, by
-    ``SLIP['agree_margin']``) than with the tracked ones, or where the section's mean ``gain``
+    or at half of it (median interval ratio within ``SLIP['same_level']`` or
+    ``SLIP['half_level']``: at half the tempo its beats fall on every other beat of one grid,
+    not the other's, an F-measure of 2/3 against 0) agree with the moved beats clearly better
+    (F-measure at 70 ms, by ``SLIP['agree_margin']``) than with the tracked ones (the half-tempo
+    vote, on 1830 generated songs: 6 better, none worse, by 0.06-0.27 downbeat F; librosa at
+    half the tempo had once moved a right section of normal 13001 to the off-beats, and no
+    longer does, since the slip finder's false slips are gone), or where the section's mean
+    ``gain``
     is above ``SLIP['min_gain']`` and the two sides' mean gains differ by more than
     ``SLIP['side_margin']`` (the other tracker often follows the same off-beats). A slip bounds
     the section, so it needs less evidence than a whole grid (:func:`mend_off_beat_grid`): on
@@ -667,7 +673,7 @@ def mend_half_beat_slips(
         ref = reference[(reference >= lo) & (reference <= hi)]
         level = np.median(np.diff(ref)) / np.median(nxt[seg]) if len(ref) > 2 else 0.0
         agree = (
-            SLIP["same_level"][0] <= level <= SLIP["same_level"][1]
+            any(lo <= level <= hi for lo, hi in (SLIP["same_level"], SLIP["half_level"]))
             and beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + SLIP["agree_margin"]
         )
         if edge or agree or (clear and gain[seg].mean() > SLIP["min_gain"]):

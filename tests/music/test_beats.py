@@ -567,9 +567,12 @@ def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
     assert np.all(np.abs(np.diff(mended) / period - 1) < 0.3)
     same, moved = mend_half_beat_slips(tracked, tracked, gain)  # the other tracker agrees: kept
     assert moved == 0 and np.array_equal(same, tracked)
-    # a tracker at half the tempo matches every other beat of either grid: it is no vote
+    # a tracker at half the tempo votes too: on the beats it matches every other moved beat
     half, moved = mend_half_beat_slips(tracked, truth[1::2], gain)
-    assert moved == 0 and np.array_equal(half, tracked)
+    assert moved > 20 and beat_f_measure(truth, half) > 0.9
+    # ... and on the off-beats every other tracked one: kept
+    half_off, moved = mend_half_beat_slips(tracked, truth[1::2] + period / 2, gain)
+    assert moved == 0 and np.array_equal(half_off, tracked)
     steady, moved = mend_half_beat_slips(truth, truth[::2], np.zeros(len(truth)))
     assert moved == 0 and np.array_equal(steady, truth)
 
