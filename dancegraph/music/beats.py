@@ -853,21 +853,27 @@ def _beatnet_beats(
 
 
 def _decode_at_level(
-    act: np.ndarray, params: barpointer.BarPointerParams, bpm: float
-) -> barpointer.DecodedBeats:
+    act: np.ndarray,
+    params: barpointer.BarPointerParams,
+    bpm: float,
+    onset_env: np.ndarray,
+    evidence: dict,
+) -> barpointer.DecodedBeats | None:
     """The bar-pointer decode of ``act`` (T, 2) with its tempo held within ``LEVEL_BAND`` of
-    ``bpm`` or of twice it (when that fits under ``params.max_bpm``), whichever path is likelier:
-    a dotted pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other
-    beat (generated songs: a 74 BPM song's double 800 nats less likely, a 121 BPM song's half
-    150 nats less likely), and of the two octaves a grid switched between
-    (:func:`octave_switch`) one is kept for the whole song."""
+    ``bpm`` or of twice it (when that fits under ``params.max_bpm``), whichever path is likelier,
+    or None when it fails the no-beat test (:func:`_usable`; ``evidence`` is not touched): a
+    dotted pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other beat
+    (generated songs: a 74 BPM song's double 800 nats less likely, a 121 BPM song's half 150
+    nats less likely), and of the two octaves a grid switched between (:func:`octave_switch`)
+    one is kept for the whole song."""
     band = 1.0 + LEVEL_BAND
     levels = [bpm] + ([2 * bpm] if 2 * bpm <= params.max_bpm else [])
     decodes = [
         barpointer.decode(act, replace(params, min_bpm=level / band, max_bpm=level * band))
         for level in levels
     ]
-    return max(decodes, key=lambda d: d.log_prob)
+    best = max(decodes, key=lambda d: d.log_prob)
+    return best if _usable(best.times, act, onset_env, dict(evidence), "beatnet")[0] else None
 
 
 def _nearest(times: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -1029,30 +1035,26 @@ def track_beats(
                 raise AudioError(f"no beat: {why}", code="no_beat")
             times, positions, meters = dec.times, dec.positions, dec.meters
             if vote:
-                pulse = dotted_pulse(times, onset_env)
-                if pulse is not None:
-                    redecoded = _decode_at_level(act, params, pulse)
-                    if _usable(redecoded.times, act, onset_env, dict(evidence), "beatnet")[0]:
-                        warnings.append(
-                            f"beat_level_corrected: the tracked beat at "
-                            f"{tempo_from_beats(times)[0]:.1f} BPM was a dotted "
-                            f"pulse (3:2) of the song's, whose onsets repeat at {pulse:.1f} BPM; "
-                            f"decoded again at that level or its double: "
-                            f"{tempo_from_beats(redecoded.times)[0]:.1f} BPM"
-                        )
-                        dec = redecoded
-                        times, positions, meters = dec.times, dec.positions, dec.meters
-                slow = octave_switch(times)
-                if slow is not None:
-                    redecoded = _decode_at_level(act, params, slow)
-                    if _usable(redecoded.times, act, onset_env, dict(evidence), "beatnet")[0]:
-                        warnings.append(
-                            f"beat_level_unified: the decoder counted some sections at twice the "
-                            f"tempo of others ({slow:.1f} and {2 * slow:.1f} BPM); decoded again "
-                            f"at one level: {tempo_from_beats(redecoded.times)[0]:.1f} BPM"
-                        )
-                        dec = redecoded
-                        times, positions, meters = dec.times, dec.positions, dec.meters
+                pulse = dotted_pulse(dec.times, onset_env)
+                again = pulse and _decode_at_level(act, params, pulse, onset_env, evidence)
+                if again:
+                    warnings.append(
+                        f"beat_level_corrected: the tracked beat at "
+                        f"{tempo_from_beats(dec.times)[0]:.1f} BPM was a dotted pulse (3:2) of "
+                        f"the song's, whose onsets repeat at {pulse:.1f} BPM; decoded again at "
+                        f"that level or its double: {tempo_from_beats(again.times)[0]:.1f} BPM"
+                    )
+                    dec = again
+                slow = octave_switch(dec.times)
+                again = slow and _decode_at_level(act, params, slow, onset_env, evidence)
+                if again:
+                    warnings.append(
+                        f"beat_level_unified: the decoder counted some sections at twice the "
+                        f"tempo of others ({slow:.1f} and {2 * slow:.1f} BPM); decoded again at "
+                        f"one level: {tempo_from_beats(again.times)[0]:.1f} BPM"
+                    )
+                    dec = again
+                times, positions, meters = dec.times, dec.positions, dec.meters
                 lib = _librosa_beats(spec)
                 # the metrical level first: a grid with nothing between its beats counts eighths
                 sub = subdivision_strength(onset_env, times)
