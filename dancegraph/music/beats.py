@@ -12,13 +12,13 @@ Method (``method='auto'``, BeatNet when its weights are installed):
   - one tempo octave: a grid that jumps between two tempo octaves, each held for a good part
     of the song (:func:`octave_switch`), is decoded again at one of them, the likelier path
     (warning ``beat_level_unified``); a ritardando, which glides, is left alone.
-  - twice the tactus, decided before the mends, on the decoder's grid: when nothing sounds between the
-    tracked beats (:func:`subdivision_strength`) they are the music's eighths; every other beat
-    is kept, the half that the notes, BeatNet's beat activation and the snare-band noise onsets
-    prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter is
-    regrouped without the decoder's count of eighths as a prior (warning ``beats_halved``). The
-    mends below then work on beats: at the eighth level "half a beat" would be a sixteenth (an
-    eighth grid that slid by one eighth is, once halved, a half-beat slip the slip mend puts
+  - twice the tactus, decided before the mends, on the decoder's grid: when nothing sounds
+    between the tracked beats (:func:`subdivision_strength`) they are the music's eighths; every
+    other beat is kept, the half that the notes, BeatNet's beat activation and the snare-band
+    noise onsets prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter
+    is regrouped without the decoder's count of eighths as a prior (warning ``beats_halved``).
+    The mends below then work on beats: at the eighth level "half a beat" would be a sixteenth
+    (an eighth grid that slid by one eighth is, once halved, a half-beat slip the slip mend puts
     back).
   - swung off-beats: a grid on the swung off-beats (the next onset comes before the middle of
     its beat, which swing never does), or a section between slips that sits there while the
@@ -614,27 +614,27 @@ def mend_half_beat_slips(
     vote, on 1830 generated songs: 6 better, none worse, by 0.06-0.27 downbeat F; librosa at
     half the tempo had once moved a right section of normal 13001 to the off-beats, and no
     longer does, since the slip finder's false slips are gone), or where the section's mean
-    ``gain``
-    is above ``SLIP['min_gain']`` and the two sides' mean gains differ by more than
+    ``gain`` is above ``SLIP['min_gain']`` and the two sides' mean gains differ by more than
     ``SLIP['side_margin']`` (the other tracker often follows the same off-beats). A slip bounds
     the section, so it needs less evidence than a whole grid (:func:`mend_off_beat_grid`): on
     170 hard generated songs 0.2 moved 1524 beats right and 125 wrong, where the whole-grid
-    threshold (then 0.75) moved 1165 right and 52 wrong and left 1450 on the off-beats,
-    against 1091; the side margin (on 210 hard songs) halves the wrong moves (132 -> 68 beats)
-    and keeps every right one. With one slip in the song, the shorter side — an intro or outro
-    of ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
+    threshold (then 0.75) moved 1165 right and 52 wrong and left 1450 on the off-beats, against
+    1091; the side margin (on 210 hard songs) halves the wrong moves (132 -> 68 beats) and keeps
+    every right one. With one slip in the song, the shorter side — an intro or outro of
+    ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
     gain says the body is the side off the beat (its notes start after its beats: gain above
     ``SLIP['body_min_gain']``, and clearly more so than the short side's): the body of a song
     sets its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are
     where the trackers go astray. Chords comped on the off-beats raise the gain of a body on the
     beat, so the body gives way only to a clear gain: on 1830 generated songs 8 bodies gave way
-    at 0.2 (then the threshold), 5 of them rightly (gain 0.24, 0.81-1.75) and 3 wrongly (0.35-
-    0.45; a normal song, 43024, downbeat F 0.00); at 0.5-0.75 alike, 12019 (0.24) now stays on
-    the off-beats (0.97 -> 0.00) and the three are right (0.95-0.99). A body whose notes start on its beats does not give way to an intro
-    whose notes start there even more clearly (generated 156-159 BPM songs whose 4-bar intros
-    both trackers put on the off-beats: 9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated
-    songs the rule set 15 intros/outros right (downbeat F +0.03-0.12 each), moved one outro onto
-    a body that was off the beat (0.19 -> 0.02) and cost one song 0.03.
+    at 0.2 (then the threshold), 5 of them rightly (gain 0.24, 0.81-1.75) and 3 wrongly
+    (0.35-0.45; a normal song, 43024, downbeat F 0.00); at 0.5-0.75 alike, 12019 (0.24) now
+    stays on the off-beats (0.97 -> 0.00) and the three are right (0.95-0.99). A body whose
+    notes start on its beats does not give way to an intro whose notes start there even more
+    clearly (generated 156-159 BPM songs whose 4-bar intros both trackers put on the off-beats:
+    9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated songs the rule set 15 intros/outros
+    right (downbeat F +0.03-0.12 each), moved one outro onto a body that was off the beat
+    (0.19 -> 0.02) and cost one song 0.03.
     Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
     effects on a correct grid, 3 real, 3 mixed. At the section borders a beat is dropped or
     inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
@@ -1036,8 +1036,10 @@ def track_beats(
             times, positions, meters = dec.times, dec.positions, dec.meters
             if vote:
                 pulse = dotted_pulse(dec.times, onset_env)
-                again = pulse and _decode_at_level(act, params, pulse, onset_env, evidence)
-                if again:
+                again = None
+                if pulse is not None:
+                    again = _decode_at_level(act, params, pulse, onset_env, evidence)
+                if again is not None:
                     warnings.append(
                         f"beat_level_corrected: the tracked beat at "
                         f"{tempo_from_beats(dec.times)[0]:.1f} BPM was a dotted pulse (3:2) of "
@@ -1046,8 +1048,10 @@ def track_beats(
                     )
                     dec = again
                 slow = octave_switch(dec.times)
-                again = slow and _decode_at_level(act, params, slow, onset_env, evidence)
-                if again:
+                again = None
+                if slow is not None:
+                    again = _decode_at_level(act, params, slow, onset_env, evidence)
+                if again is not None:
                     warnings.append(
                         f"beat_level_unified: the decoder counted some sections at twice the "
                         f"tempo of others ({slow:.1f} and {2 * slow:.1f} BPM); decoded again at "
