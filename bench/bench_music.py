@@ -67,6 +67,7 @@ from dancegraph.music.analysis import (  # noqa: E402
     four_beat_bars,
     phrase_unit,
 )
+from dancegraph.music.beats import beat_f_measure  # noqa: E402
 from dancegraph.music.decode import load_audio, resample  # noqa: E402
 from dancegraph.music.features import frame_features  # noqa: E402
 from dancegraph.music.generator import bar_grid, generate_song, write_song  # noqa: E402
@@ -74,25 +75,6 @@ from dancegraph.music.structure import analyze_structure  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 from dancegraph.rhythm.music import music_signatures  # noqa: E402
 from dancegraph.rhythm.signatures import nearest_common, to_bits  # noqa: E402
-
-
-def f_measure(est, ref, tol: float) -> float:
-    """One-to-one matching within ``tol`` seconds (greedy by distance); F = 2PR / (P + R)."""
-    est, ref = np.sort(np.asarray(est, float)), np.sort(np.asarray(ref, float))
-    if len(est) == 0 and len(ref) == 0:
-        return 1.0
-    if len(est) == 0 or len(ref) == 0:
-        return 0.0
-    d = np.abs(est[:, None] - ref[None, :])
-    pairs = sorted(zip(*np.nonzero(d <= tol), strict=True), key=lambda p: d[p])
-    used_e, used_r, hit = set(), set(), 0
-    for i, j in pairs:
-        if i not in used_e and j not in used_r:
-            used_e.add(i)
-            used_r.add(j)
-            hit += 1
-    p, r = hit / len(est), hit / len(ref)
-    return 0.0 if hit == 0 else 2 * p * r / (p + r)
 
 
 def tempo_error(est_bpm: float, true_bpm: float) -> float:
@@ -193,12 +175,12 @@ def run_generated(
                 "tempo_err": tempo_error(a.tempo_bpm, tr["tempo_bpm"]),
                 "est_meter": a.meter,
                 "dur": song.duration_s,
-                "beat_f": f_measure(a.beats, tr["beats"], 0.07),
-                "down_f": f_measure(a.downbeats, tr["downbeats"], 0.07),
-                "bound_f": f_measure(est_bounds, ref_bounds, 3.0),
+                "beat_f": beat_f_measure(a.beats, tr["beats"], 0.07),
+                "down_f": beat_f_measure(a.downbeats, tr["downbeats"], 0.07),
+                "bound_f": beat_f_measure(est_bounds, ref_bounds, 3.0),
                 "alike": alike,
                 "apart": apart,
-                "true_bound_f": f_measure(t_bounds, ref_bounds, 3.0),
+                "true_bound_f": beat_f_measure(t_bounds, ref_bounds, 3.0),
                 "true_alike": t_alike,
                 "sig_top3": sig_hits,
                 "cpu_per_min": cpu / (song.duration_s / 60),
@@ -315,8 +297,10 @@ def run_cc_stability(tmp: Path, originals: dict[Path, MusicAnalysis]) -> None:
         }
         for name, (a, cut) in variants.items():
             # both sides from one second after the cut: a tracker needs a beat or two to lock on
-            beat_f = f_measure(_after(a.beats + cut, cut), _after(base.beats, cut), 0.07)
-            down_f = f_measure(_after(a.downbeats + cut, cut), _after(base.downbeats, cut), 0.07)
+            beat_f = beat_f_measure(_after(a.beats + cut, cut), _after(base.beats, cut), 0.07)
+            down_f = beat_f_measure(
+                _after(a.downbeats + cut, cut), _after(base.downbeats, cut), 0.07
+            )
             print(
                 f"{f.name[:32]:<32} {name:<10} {beat_f:6.3f} {down_f:6.3f} {a.tempo_bpm:6.1f}"
                 f" {a.meter:>5} {a.n_bars:>5}",

@@ -258,26 +258,25 @@ class BeatTracking:
 
 
 def beat_f_measure(ref: np.ndarray, est: np.ndarray, tol: float = 0.07) -> float:
-    """F-measure of estimated against reference event times (s), one-to-one matches within ``tol``."""
+    """F-measure of estimated against reference event times (s): the largest one-to-one matching
+    of events within ``tol`` of each other (walking both sorted lists, each event matched to the
+    earliest partner still free, is maximal for a common tolerance), F = 2PR / (P + R)."""
     ref = np.sort(np.asarray(ref, dtype=np.float64))
     est = np.sort(np.asarray(est, dtype=np.float64))
     if len(ref) == 0 and len(est) == 0:
         return 1.0
-    if len(ref) == 0 or len(est) == 0:
+    i = j = hits = 0
+    while i < len(est) and j < len(ref):
+        if abs(est[i] - ref[j]) <= tol:
+            hits, i, j = hits + 1, i + 1, j + 1
+        elif est[i] < ref[j]:
+            i += 1
+        else:
+            j += 1
+    if hits == 0:
         return 0.0
-    used = np.zeros(len(ref), dtype=bool)
-    hits = 0
-    for t in est:
-        j = int(np.searchsorted(ref, t))
-        best, best_d = -1, tol
-        for c in (j - 1, j):
-            if 0 <= c < len(ref) and not used[c] and abs(ref[c] - t) <= best_d:
-                best, best_d = c, abs(ref[c] - t)
-        if best >= 0:
-            used[best] = True
-            hits += 1
     p, r = hits / len(est), hits / len(ref)
-    return 0.0 if hits == 0 else 2 * p * r / (p + r)
+    return 2 * p * r / (p + r)
 
 
 def beat_phase_profile(onset_env: np.ndarray, times: np.ndarray, bins: int) -> np.ndarray:

@@ -443,6 +443,15 @@ def test_bars_clearer_in_four_keep_or_bring_a_four_four_song_to_four(
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= min_downbeat_f
 
 
+def test_beat_f_measure_is_the_largest_one_to_one_matching() -> None:
+    assert beat_f_measure([], []) == 1.0 and beat_f_measure([1.0], []) == 0.0
+    assert beat_f_measure([0.0, 1.0, 2.0], [0.05, 1.2, 2.0]) == pytest.approx(2 / 3)
+    # nearest-first would pair 0.9 with 1.0 and leave 1.8 alone; both can be matched
+    assert beat_f_measure([0.0, 1.0], [0.9, 1.8], tol=1.0) == 1.0
+    # one estimate cannot count for two references
+    assert beat_f_measure([1.0, 1.05], [1.02], tol=0.07) == pytest.approx(2 / 3)
+
+
 def test_downbeat_contrast() -> None:
     evidence = np.array([2.0, 0.0, 1.0, 0.0, 2.0, 0.0, 1.0, 0.0])
     assert bargroup.downbeat_contrast(evidence, np.tile([1, 2, 3, 4], 2)) == pytest.approx(
