@@ -23,7 +23,9 @@ on hard 37000-37039, hard 38000-38029 (150-180), normal 39000-39029 (150-180) an
 late): hard 41000-41079, 42000-42039 (70-95), 44000-44039 (150-180), normal 43000-43039;
 3/4 hard 45000-45029 (150-180) and 46000-46029 (70-95); before the one-octave re-decode was
 checked on them: hard 47000-47059, 49000-49039 (150-180), 50000-50039 (70-95), normal
-48000-48039, 51000-51039 (70-95), 52000-52039 (150-180).
+48000-48039, 51000-51039 (70-95), 52000-52039 (150-180); before the bar-clarity meter rule
+was checked on them (2026-12-01): hard 53000-53059, 54000-54039 (150-180), 3/4 hard
+56000-56029 (150-180), normal 55000-55039 (150-180) and 57000-57039.
 
 Metrics (generated set, each song written as WAV and analysed from the file by ``analyze``):
 - beat F and downbeat F: F-measure at ±70 ms against the generator's beats / downbeats;
