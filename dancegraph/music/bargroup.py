@@ -434,11 +434,12 @@ def group_beats(
     margin = METER_MARGIN if meter_prior else HALVED_METER_MARGIN
     e = downbeat_evidence(act, frames, chroma, tracked, snare_onset)
     restarts = restart_costs(frames)
+    paths = {m: phase_viterbi(e, m, restarts) for m in (3, 4)}
     meter = decoded
     clearer_in_4 = float("nan")
     if np.isfinite(dist[3]) and np.isfinite(dist[4]):
         # how much more clearly the evidence forms bars of 4 than bars of 3
-        contrast = {m: downbeat_contrast(e, phase_viterbi(e, m, restarts)) for m in (3, 4)}
+        contrast = {m: downbeat_contrast(e, paths[m]) for m in (3, 4)}
         clearer_in_4 = float(np.nan_to_num(contrast[4] - contrast[3]))
         if decoded in (2, 4) and dist[3] < dist[4] - margin and clearer_in_4 < CLARITY_MARGIN:
             meter = 3
@@ -447,7 +448,8 @@ def group_beats(
             or (dist[4] < dist[3] and clearer_in_4 >= CLARITY_MARGIN)
         ):
             meter = 4
-    new = phase_viterbi(e, 4 if meter == 2 else meter, restarts)
+    grouping = 4 if meter == 2 else meter
+    new = paths[grouping] if grouping in paths else phase_viterbi(e, grouping, restarts)
     if meter == 2:
         # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
         if half_bar_contrast(e, new) > DUPLE_MARGIN:
