@@ -18,8 +18,9 @@ from fastapi import FastAPI, Request
 from dancegraph import __version__
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
-from services.api import metrics, problems
+from services.api import metrics
 from services.api.routers import batches, datasets, health, jobs, preview
+from services.common import problems
 from services.config import Settings, get_settings
 from services.preview_server import static_router
 

@@ -247,7 +247,7 @@ def register_dataset(settings, name: str = TEST_DATASET) -> None:
 def _make_api(settings) -> Iterator[ApiClient]:
     from fastapi.testclient import TestClient
 
-    from services.api import catalog
+    from services.common import catalog
     from services.api.app import create_app
 
     catalog.reset()
