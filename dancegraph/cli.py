@@ -47,6 +47,14 @@ def _read_spec(path: str | None, dataset: str | None = None) -> Spec:
     return parse_spec(raw, dataset=dataset)
 
 
+def _warm_kernels(*modules: str) -> None:
+    """Compile or load the kernels of ``modules`` (default: all) under the kernel cache's lock,
+    at the start of a command that runs them (``dancegraph.jit``)."""
+    from dancegraph import jit
+
+    jit.warm_kernels(modules or jit.KERNEL_MODULES)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Every command: the domain ones below, then those of the installed command groups."""
     parser = argparse.ArgumentParser(prog="dancegraph", description="Music in, dance out.")
@@ -85,6 +93,7 @@ def _add_analyze(sub) -> None:
     def run(args) -> None:
         from dancegraph.music.analysis import analyze
 
+        _warm_kernels("dancegraph.music.beats")
         result = analyze(args.audio)
         print_json(result.to_dict() if args.json else result.summary())
 
@@ -303,6 +312,7 @@ def _add_synthesize(sub) -> None:
         if args.alternatives is not None:
             spec = parse_spec({**spec.model_dump(mode="json"), "alternatives": args.alternatives})
         graph = open_graph(ObjectStore(args.store or store_dir()), args.dataset)
+        _warm_kernels()
         done = synthesize(args.audio, graph, spec, args.out)
         timeline = done["timeline"]
         print_json(
@@ -357,6 +367,7 @@ def _add_eval(sub) -> None:
         from dancegraph.store import ObjectStore
 
         store = ObjectStore(args.store or store_dir())
+        _warm_kernels()
         if args.result:
             from dancegraph.preview import read_timeline
 
