@@ -141,11 +141,18 @@ def _load_graph(store_root: str, name: str, version: str):
 
 
 def render(
-    store: ObjectStore, job_id: str, spec: Spec, analysis: MusicAnalysis, found: SearchResult
+    store: ObjectStore,
+    job_id: str,
+    spec: Spec,
+    analysis: MusicAnalysis,
+    found: SearchResult,
+    audio: dict[str, str] | None = None,
 ) -> list[str]:
     """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
 
-    FBX is not written here: it is the ``fbx`` queue's work (a warm Blender per worker).
+    ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
+    ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
+    queue's work (a warm Blender per worker).
     """
     final = store.path(jobs.result_key(job_id))
     if (final / TIMELINE).is_file():
@@ -159,7 +166,8 @@ def render(
     tmp = store.root / "tmp" / f"job-{job_id}-{uuid.uuid4().hex}"
     tmp.mkdir(parents=True)
     try:
-        render_motion(graph, analysis, found, bvh_spec, tmp)
+        extra = {"audio": audio} if audio else None
+        render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         publish_folder(tmp, final, marker=TIMELINE)
     finally:
@@ -278,7 +286,8 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         found = search(settings, spec, terms)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
-        files = render(store, job_id, spec, analysis, found)
+        source = {"file": job.audio_filename, "sha256": job.audio_sha256}
+        files = render(store, job_id, spec, analysis, found, source)
         beat.check()
         if wants_fbx(spec) and not all(
             p.with_suffix(".fbx").exists() for p in bvh_files(store, job_id)
