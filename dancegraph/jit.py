@@ -45,14 +45,14 @@ _warm_lock = threading.RLock()
 def configure_cache() -> Path:
     """Point numba's cache at ``kernel_cache_dir()`` for kernels decorated from now on (also
     reaches librosa's kernels when librosa is imported later, through ``NUMBA_CACHE_DIR``)."""
-    import numba
+    from numba.core import config  # its settings are module attributes set at run time
 
     from dancegraph.paths import kernel_cache_dir
 
-    if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = str(kernel_cache_dir())
-    os.environ.setdefault("NUMBA_CACHE_DIR", numba.config.CACHE_DIR)
-    path = Path(numba.config.CACHE_DIR)
+    if not config.CACHE_DIR:  # type: ignore[attr-defined]
+        config.CACHE_DIR = str(kernel_cache_dir())  # type: ignore[attr-defined]
+    path = Path(config.CACHE_DIR)  # type: ignore[attr-defined]
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(path))
     path.mkdir(parents=True, exist_ok=True)
     return path
 

@@ -24,6 +24,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import Any
 
 import httpx
 
@@ -198,7 +199,10 @@ def deliver_job_webhook(
         timeout=settings.webhook_timeout_s,
         delivery_id=delivery_id,
     )
-    values = {"webhook_attempts": Job.webhook_attempts + 1, "webhook_last_error": result.error}
+    values: dict[str, Any] = {
+        "webhook_attempts": Job.webhook_attempts + 1,
+        "webhook_last_error": result.error,
+    }
     if result.ok:
         values.update(webhook_status=WEBHOOK_DELIVERED, webhook_delivered_at=utcnow())
     elif final_attempt or not result.retryable:

@@ -260,6 +260,7 @@ def match_nodes(
             )
         bit = np.uint32(graph.tag_bit(tag))
         return np.nonzero(np.asarray(graph.node_tags) & bit)[0]
+    assert node is not None  # the spec's validator: a node, or a tag
     take, _, rest = node.partition(":")
     if rest == "*":
         if take not in graph.clips:
@@ -603,7 +604,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     if empty.size:
         members = np.nonzero(var == empty[0])[0]
         t = int(members[0])
-        if parity[members].any() and all(allowed_at(m).any() for m in members):
+        if parity[members].any() and all(allowed_at(int(m)).any() for m in members):
             raise SpecError(
                 f"bars {members.tolist()} must mirror each other (structure.mirror) but the excludes leave no node with an allowed mirror",
                 code="constraint_conflict",
@@ -642,7 +643,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         wp_idx.append(int(np.clip(round(frac * n_path), 0, n_path - 1)))
         wp_pos.append(wp.position)
         wp_tol.append(wp.tolerance)
-    wp = (
+    waypoints = (
         np.array(wp_bar, dtype=np.int64),
         np.array(wp_idx, dtype=np.int64),
         np.array(wp_pos, dtype=np.float64).reshape(-1, 2),
@@ -686,10 +687,10 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         cell=POSITION_CELL if on else -1.0,
         start=start,
         stage=np.append(stage, STAGE_WEIGHT),
-        wp_bar=wp[0],
-        wp_idx=wp[1],
-        wp_pos=wp[2],
-        wp_tol=wp[3],
+        wp_bar=waypoints[0],
+        wp_idx=waypoints[1],
+        wp_pos=waypoints[2],
+        wp_tol=waypoints[3],
         wp_w=WAYPOINT_WEIGHT,
         reach=reach,
     )
@@ -703,7 +704,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         "parity": parity,
         "stage": stage,
         "start": start,
-        "wp": wp,
+        "wp": waypoints,
         "radius": _ro(graph.radius, np.float64),
         "root_path": dp_graph.path,
         "zm": zm,
@@ -730,6 +731,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         # the reuse penalty counts every bar a variable stands for
         u = unary + bars_per_var[:, None] * penalty[None, :]
         if target_sig is not None:
+            assert spec.signature is not None  # target_sig is set only with it
             # the χ² to the target is not a per-bar cost: plan motifs (see below) and keep the
             # path with the best cost + scale·χ²
             scale = SIGNATURE_SCALE * spec.signature.weight * n_bars
@@ -830,7 +832,7 @@ def warm_up() -> None:
 
     n, d = 2, 4
     z = np.zeros
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "node_clip": z(n, np.int32),
         "node_bar": np.arange(n, dtype=np.int32),
         "node_kind": z(n, np.int8),
