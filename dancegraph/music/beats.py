@@ -1230,6 +1230,7 @@ def warm_up() -> None:
     """Compile the decoder, load the models and run librosa's kernels once, so the first song
     does not pay for compilation; never raises. Registered as ``music`` with ``dancegraph.jit``,
     which runs it under the kernel cache's lock."""
+    jit.import_cached("librosa.beat")  # its one uncached gufunc, cached (see jit.import_cached)
     barpointer.warm_up()
     try:
         from dancegraph.music.beatnet import load_model
