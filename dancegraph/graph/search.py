@@ -141,6 +141,34 @@ class SearchResult:
         )
 
 
+@dataclass
+class SearchContext:
+    """What the passes of one search share, and what explaining a path reads: the DP's arrays
+    (``dp``, ``chain``, ``track``, ``slots`` states per node, ``dense`` variables relaxed from
+    every state), each bar's chain ``step`` and mirror ``parity``, the trajectory terms
+    (``stage`` bounds and weight, ``start`` pose, ``waypoints`` as (bar, path index, position,
+    tolerance) arrays, node ``radius``, ``root_path``), the data terms' inputs (``zm`` (T, 32)
+    music style, ``sig_cost`` (T, 13)), the motif sequence to re-create (or None), and the
+    charge cache kept across passes (``memo``)."""
+
+    dp: _dp.Graph
+    chain: _dp.Chain
+    track: _dp.Track
+    slots: int
+    step: np.ndarray
+    parity: np.ndarray
+    stage: np.ndarray
+    start: np.ndarray
+    waypoints: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    radius: np.ndarray
+    root_path: np.ndarray
+    zm: np.ndarray
+    sig_cost: np.ndarray
+    recreate: np.ndarray | None
+    dense: np.ndarray
+    memo: tuple[np.ndarray, np.ndarray]
+
+
 # --------------------------------------------------------------------------------------------
 # music side
 
@@ -694,30 +722,29 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         wp_w=WAYPOINT_WEIGHT,
         reach=reach,
     )
-    ctx = {
-        "graph": graph,
-        "dp": dp_graph,
-        "chain": chain,
-        "track": track,
-        "slots": slots,
-        "step": step,
-        "parity": parity,
-        "stage": stage,
-        "start": start,
-        "wp": waypoints,
-        "radius": _ro(graph.radius, np.float64),
-        "root_path": dp_graph.path,
-        "zm": zm,
-        "sig_cost": sig_cost,
-        "recreate": recreate,
-        # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
-        "dense": n_allowed <= DENSE_LIMIT,
-    }
     # per state the cost of each charged transition, kept across the passes (alternatives)
     n_memo = chain.charge_n.size if chain.charge_n.size * n_nodes * slots <= MEMO_BUDGET else 0
-    ctx["memo"] = (
-        np.full((n_nodes * slots, n_memo, 2), -1, dtype=np.int32),
-        np.zeros((n_nodes * slots, n_memo), dtype=np.float32),
+    ctx = SearchContext(
+        dp=dp_graph,
+        chain=chain,
+        track=track,
+        slots=slots,
+        step=step,
+        parity=parity,
+        stage=stage,
+        start=start,
+        waypoints=waypoints,
+        radius=_ro(graph.radius, np.float64),
+        root_path=dp_graph.path,
+        zm=zm,
+        sig_cost=sig_cost,
+        recreate=recreate,
+        # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
+        dense=n_allowed <= DENSE_LIMIT,
+        memo=(
+            np.full((n_nodes * slots, n_memo, 2), -1, dtype=np.int32),
+            np.zeros((n_nodes * slots, n_memo), dtype=np.float32),
+        ),
     )
     alternatives: list[Alternative] = []
     bars_per_var = np.bincount(var, minlength=n_vars).astype(np.float32)
@@ -978,31 +1005,31 @@ def _ptr(owner: np.ndarray, n_chain: int) -> np.ndarray:
     return ptr
 
 
-def _run(ctx: dict, unary: np.ndarray, spec: Spec) -> np.ndarray:
+def _run(ctx: SearchContext, unary: np.ndarray, spec: Spec) -> np.ndarray:
     """One forward pass and backtrack; returns the node of every song bar ``(T,)``."""
     unary = np.ascontiguousarray(unary, dtype=np.float32)
     with _dp.FORWARD_LOCK:
         back, final, dead = _dp.forward(
             unary,
-            ctx["chain"],
-            ctx["dp"],
-            ctx["track"],
+            ctx.chain,
+            ctx.dp,
+            ctx.track,
             float(spec.weights.transition),
-            ctx["dense"],
-            ctx["slots"],
+            ctx.dense,
+            ctx.slots,
             DENSE_LIMIT,
-            *ctx["memo"],
+            *ctx.memo,
         )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(
-            f"no path reaches bar {int(ctx['chain'].bar[dead])}",
+            f"no path reaches bar {int(ctx.chain.bar[dead])}",
             code="constraint_conflict",
             field="include",
         )
-    chain_nodes, _ = _dp.backtrack(back, final, ctx["slots"])
-    nodes = chain_nodes[ctx["step"]]
-    flip = ctx["parity"] == 1
-    nodes[flip] = ctx["dp"].mirror_of[nodes[flip]]
+    chain_nodes, _ = _dp.backtrack(back, final, ctx.slots)
+    nodes = chain_nodes[ctx.step]
+    flip = ctx.parity == 1
+    nodes[flip] = ctx.dp.mirror_of[nodes[flip]]
     return nodes
 
 
@@ -1038,7 +1065,15 @@ def placed_motion(
     return Motion(skeleton=m.skeleton, fps=m.fps, root_positions=root, rotations=rot)
 
 
-def evaluate(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternative:
+def evaluate(
+    graph: MotionGraph,
+    music: dict,
+    spec: Spec,
+    nodes: np.ndarray,
+    ctx: SearchContext,
+    pairs: list,
+    contradictions: list,
+) -> Alternative:
     """Cost breakdown and constraint check of a path; raises SpecError when the stage or a
     waypoint is missed (no path satisfied it)."""
     from dancegraph.graph.explain import breakdown
