@@ -36,6 +36,8 @@ def breakdown(
     pairs: list,
     contradictions: list,
 ) -> Alternative:
+    """Cost breakdown and constraint check of path ``nodes`` (one per bar); raises SpecError
+    when the stage or a waypoint is missed (no path satisfied it)."""
     w = spec.weights
     n_bars = len(nodes)
     nodes = np.asarray(nodes, dtype=np.int64)

@@ -473,6 +473,8 @@ def bar_terms(
 
 def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
+    from dancegraph.graph.explain import breakdown  # cost breakdown and constraint check of a path
+
     jit.ensure("search")  # compiles into the shared kernel cache only under its lock
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
@@ -764,7 +766,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
             scale = SIGNATURE_SCALE * spec.signature.weight * n_bars
 
             def scored(nodes, scale=scale):
-                alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+                alt = breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
                 chi2 = choreography.chi_square(
                     choreography.motif_signature(motif[nodes], len(target_sig)), target_sig
                 )
@@ -794,7 +796,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
             alt.choreography["target"] = spec.signature.target
         else:
             nodes = run_with(u)
-            alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+            alt = breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
         if recreate is not None:
             alt.choreography["recreate_match"] = float(np.mean(motif[nodes] == recreate))
         alternatives.append(alt)
@@ -1063,22 +1065,6 @@ def placed_motion(
     rot = m.rotations.copy()
     rot[:, 0] = quat.multiply(np.broadcast_to(turn, rot[:, 0].shape), rot[:, 0])
     return Motion(skeleton=m.skeleton, fps=m.fps, root_positions=root, rotations=rot)
-
-
-def evaluate(
-    graph: MotionGraph,
-    music: dict,
-    spec: Spec,
-    nodes: np.ndarray,
-    ctx: SearchContext,
-    pairs: list,
-    contradictions: list,
-) -> Alternative:
-    """Cost breakdown and constraint check of a path; raises SpecError when the stage or a
-    waypoint is missed (no path satisfied it)."""
-    from dancegraph.graph.explain import breakdown
-
-    return breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
 
 
 jit.register("search", warm_up)
