@@ -27,8 +27,10 @@ limb bones, the largest frame-to-frame joint rotation, and the time taken.
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
@@ -42,8 +44,8 @@ from dancegraph.motion.rig import (
     SIDES,
     Rig,
     RoleMap,
-    canonical_frame,
     bone_end,
+    canonical_frame,
     foot_points,
     skeleton_roles,
 )
@@ -578,3 +580,62 @@ def retarget_report(
         },
         "max_joint_step_deg": {"target": max_step(g), "source": max_step(src_g)},
     }
+
+
+#: Output formats of a dance on a rig, by file suffix.
+RIG_OUTPUTS = (".bvh", ".fbx", ".glb")
+
+
+def write_on_rig(
+    motion: Motion, rig: Rig, rig_path: str | Path, out_path: str | Path, *, exporter=None
+) -> dict:
+    """Write a retargeted ``motion`` (on ``rig.skeleton``) as BVH, FBX or GLB, by ``out_path``'s suffix.
+
+    BVH: the rig's joints in its own units (a rig read from centimetres is written in
+    centimetres); GLB: :func:`~dancegraph.motion.gltf.write_glb` (with the skinned mesh);
+    FBX: the rig file ``rig_path`` itself posed in Blender (its own process, ``exporter`` or the
+    shared warm one), meshes included. Returns a small summary; raises ``DanceGraphError``
+    (``rig_output_format``) or ``FbxError``.
+    """
+    out = Path(out_path)
+    suffix = out.suffix.lower()
+    if suffix not in RIG_OUTPUTS:
+        raise DanceGraphError(
+            f"{out.name}: a dance on a rig is written as {', '.join(RIG_OUTPUTS)}",
+            code="rig_output_format",
+            field=out.name,
+        )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".bvh":
+        from dancegraph.motion.bvh import write_bvh
+
+        sk = motion.skeleton
+        k = 1.0 / rig.unit_scale
+        scaled = Skeleton(
+            sk.names,
+            sk.parents,
+            sk.offsets * k,
+            sk.channels,
+            {j: v * k for j, v in sk.end_sites.items()},
+            dict(sk.canonical),
+        )
+        write_bvh(Motion(scaled, motion.fps, motion.root_positions * k, motion.rotations), out)
+        return {"frames": motion.n_frames, "joints": sk.n_joints}
+    if suffix == ".glb":
+        from dancegraph.motion.gltf import write_glb
+
+        return write_glb(motion, rig, out)
+    from dancegraph.motion.fbx import shared_exporter
+
+    positions, g = forward_kinematics(motion)
+    with tempfile.TemporaryDirectory(prefix="dg-rig-") as tmp:
+        anim = Path(tmp) / "anim.npz"
+        np.savez(
+            anim,
+            names=np.array(motion.skeleton.names, dtype=str),
+            g=g,
+            positions=positions,
+            fps=np.float64(motion.fps),
+            unit_scale=np.float64(rig.unit_scale),
+        )
+        return (exporter or shared_exporter()).animate_rig(rig_path, anim, out)
