@@ -639,3 +639,43 @@ def write_on_rig(
             unit_scale=np.float64(rig.unit_scale),
         )
         return (exporter or shared_exporter()).animate_rig(rig_path, anim, out)
+
+
+class RigOutput:
+    """The render hook that puts each rendered alternative on a user's rig (``render(on_rig=...)``).
+
+    ``rig``: the loaded :class:`~dancegraph.motion.rig.Rig`; ``rig_path``: its file (FBX output
+    poses that file in Blender); ``formats``: of ``bvh``, ``fbx``, ``glb``. Calling it with
+    ``(k, dance, out_dir)`` retargets ``dance`` and writes ``alternatives/<k>.rig.<fmt>``; it
+    returns ``(files, report)``: ``{"rig.<fmt>": relative path}`` and the retarget report.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        rig_path: str | Path,
+        formats: list[str] | tuple[str, ...] = ("bvh", "fbx", "glb"),
+        *,
+        exporter=None,
+        params: RetargetParams | None = None,
+    ):
+        self.rig = rig
+        self.rig_path = Path(rig_path)
+        self.formats = [f for f in ("bvh", "fbx", "glb") if f in formats]
+        self.exporter = exporter
+        self.params = params
+        self._plan: tuple[int, RetargetPlan] | None = None
+
+    def __call__(self, k: int, dance: Motion, out_dir: str | Path) -> tuple[dict, dict]:
+        key = id(dance.skeleton)
+        if self._plan is None or self._plan[0] != key:
+            self._plan = (key, plan_retarget(dance.skeleton, self.rig))
+        motion, report = retarget(dance, self.rig, self.params, plan=self._plan[1])
+        files = {}
+        for fmt in self.formats:
+            rel = f"alternatives/{k}.rig.{fmt}"
+            write_on_rig(
+                motion, self.rig, self.rig_path, Path(out_dir) / rel, exporter=self.exporter
+            )
+            files[f"rig.{fmt}"] = rel
+        return files, report

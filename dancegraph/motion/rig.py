@@ -392,47 +392,64 @@ def _chain(start: int, kids: list[list[int]], size: np.ndarray) -> list[int]:
     return out
 
 
-def _structure_roles(
-    names: list[str], parents: np.ndarray, pos: np.ndarray, up: np.ndarray
-) -> dict[str, str]:
+def _structure_roles(names: list[str], parents: np.ndarray, pos: np.ndarray) -> dict[str, str]:
     """Roles from the hierarchy's shape and the bind pose, for rigs whose names no preset knows.
 
     The hips are the first joint (from the root) with three or more branches of depth ≥ 3; the
-    spine is the branch that ends highest along ``up``, the legs the two that end lowest. Left is
-    the side of ``up × forward``, forward being where the toes point. Arms branch from the spine
+    spine is the largest of them (it carries the arms and the head), the legs the next two; up
+    is the world axis nearest to the direction from the legs to the spine. Left is
+    the side of ``up × forward``, forward being where the toes point (without toes: where the
+    knees bend). Arms branch from the spine
     sideways; a chain's joints are read from its bends (collar, upper arm, forearm, hand; thigh,
     shin, foot, toe).
     """
     kids = _children(parents)
     size = _subtree_size(parents)
-    height = pos @ up
 
     def depth(j: int) -> int:
         return len(_chain(j, kids, size))
 
-    hips = None
-    for j in range(len(names)):
-        if sum(depth(c) >= 3 for c in kids[j]) >= 3:
-            hips = j
-            break
-    if hips is None:
-        return {}
+    extent = float(np.ptp(pos, axis=0).max()) or 1.0
+    for hips in range(len(names)):
+        if sum(depth(c) >= 3 for c in kids[hips]) >= 3:
+            found = _structure_from_hips(hips, names, pos, kids, size, depth, extent)
+            if found:
+                return found
+    return {}
+
+
+def _structure_from_hips(hips, names, pos, kids, size, depth, extent) -> dict[str, str]:
+    """The roles below a hips candidate, or {} when its branches do not make a body."""
     branches = [c for c in kids[hips] if depth(c) >= 3]
-    ends = {c: _chain(c, kids, size)[-1] for c in branches}
-    branches.sort(key=lambda c: height[ends[c]])
-    legs, spine_root = branches[:2], branches[-1]
+    # the spine carries the arms and the head: the largest subtree; the legs are the other two
+    branches.sort(key=lambda c: -size[c])
+    spine_root, legs = branches[0], branches[1:3]
+
+    def members(c: int) -> list[int]:
+        out, stack = [], [c]
+        while stack:
+            j = stack.pop()
+            out.append(j)
+            stack.extend(kids[j])
+        return out
+
+    up = _snap_axis(
+        pos[members(spine_root)].mean(axis=0)
+        - np.concatenate([pos[members(c)] for c in legs]).mean(axis=0)
+    )
+    height = pos @ up
     roles: dict[str, int] = {"hips": hips}
 
     leg_chains = []
     for c in legs:
         ch = _chain(c, kids, size)
-        low = int(np.argmin(height[ch]))
-        # the ankle: the last joint still well above the lowest point of the chain
         top = height[ch[0]]
-        bottom = height[ch[low]]
-        ankle_i = max(i for i in range(low + 1) if height[ch[i]] >= bottom + 0.02 * (top - bottom))
-        if ankle_i == low and low > 0 and low == len(ch) - 1:
-            ankle_i = low
+        # the ankle: the end of the last bone that runs mostly down (feet and toes run forward)
+        seg = np.diff(pos[ch], axis=0)
+        down = -(seg @ up) > 0.7 * np.linalg.norm(seg, axis=1)
+        ankle_i = int(np.flatnonzero(down)[-1]) + 1 if down.any() else 0
+        if ankle_i < 2 or top - height[ch[ankle_i]] < 0.25 * extent:
+            return {}  # not a leg: too short, or no joint between hip and ankle
         knee_i = min(
             range(ankle_i), key=lambda i: abs(height[ch[i]] - 0.5 * (top + height[ch[ankle_i]]))
         )
@@ -444,7 +461,11 @@ def _structure_roles(
         if a + 1 < len(ch):
             fwd += pos[ch[-1]] - pos[ch[a]]
     fwd -= (fwd @ up) * up
-    if np.linalg.norm(fwd) < 1e-9:
+    if np.linalg.norm(fwd) < 1e-6 * extent:  # no toes: the knees bend forward
+        for ch, h, k, a in leg_chains:
+            fwd += pos[ch[k]] - 0.5 * (pos[ch[h]] + pos[ch[a]])
+        fwd -= (fwd @ up) * up
+    if np.linalg.norm(fwd) < 1e-6 * extent:
         return {}
     left_axis = np.cross(up, fwd / np.linalg.norm(fwd))
     leg_chains.sort(key=lambda t: -(pos[t[0][t[2]]] @ left_axis))  # left leg first
@@ -455,7 +476,13 @@ def _structure_roles(
         if ankle_i + 1 < len(ch):
             roles[f"{side}_toe"] = ch[ankle_i + 1]
 
-    spine = _chain(spine_root, kids, size)
+    # the spine runs up the middle: at each joint, the child whose subtree is nearest the midline
+    mid = pos[hips] @ left_axis
+    spine = [spine_root]
+    while kids[spine[-1]]:
+        spine.append(
+            min(kids[spine[-1]], key=lambda c: abs(pos[members(c)].mean(axis=0) @ left_axis - mid))
+        )
     # the arms branch off where the spine chain has side branches of depth >= 3
     branch_i = None
     for i, j in enumerate(spine):
@@ -468,10 +495,13 @@ def _structure_roles(
         arms.sort(key=lambda c: -(pos[_chain(c, kids, size)[-1]] @ left_axis))
         for side, c in zip(SIDES, arms[:2], strict=False):
             ch = _chain(c, kids, size)
-            # the hand: the first joint with two or more children (fingers), else the 4th/3rd
+            # the hand: the first joint with two or more children (fingers); else the 4th joint
+            # when the chain starts with a clavicle (a first bone much shorter than the second)
             hand_i = next((i for i, j in enumerate(ch) if len(kids[j]) >= 2), None)
             if hand_i is None or hand_i < 2:
-                hand_i = min(len(ch) - 1, 3 if len(ch) >= 5 else 2)
+                seg = np.linalg.norm(np.diff(pos[ch], axis=0), axis=1)
+                collar = len(seg) >= 2 and seg[0] < 0.6 * seg[1]
+                hand_i = min(len(ch) - 1, 3 if collar else 2)
             roles[f"{side}_wrist"] = ch[hand_i]
             roles[f"{side}_elbow"] = ch[hand_i - 1]
             roles[f"{side}_shoulder"] = ch[hand_i - 2]
@@ -565,8 +595,7 @@ def map_roles(
 ) -> RoleMap:
     """Humanoid roles of a skeleton: ``user`` mapping, then name presets, then structure.
 
-    ``positions``: ``(J, 3)`` bind-pose world positions (any axes; the up axis is guessed from the
-    mapped hips and head, else Y). A user mapping naming a joint that is not there raises
+    ``positions``: ``(J, 3)`` bind-pose world positions (any axes). A user mapping naming a joint that is not there raises
     ``RigError`` (``rig_map_invalid``).
     """
     parents = np.asarray(parents)
@@ -588,31 +617,13 @@ def map_roles(
             roles[role], how[role] = joint, f"preset:{preset}"
             used.add(joint)
     if any(r not in roles for r in REQUIRED_ROLES):
-        up = _guess_up(names, positions, roles)
-        for role, joint in _structure_roles(names, parents, positions, up).items():
+        for role, joint in _structure_roles(names, parents, positions).items():
             if role not in roles and joint not in used:
                 roles[role], how[role] = joint, "structure"
                 used.add(joint)
     ordered = {r: roles[r] for r in ROLES if r in roles}
     unmapped = [n for n in names if n not in used]
     return RoleMap(ordered, {r: how[r] for r in ordered}, unmapped)
-
-
-def _guess_up(names: list[str], pos: np.ndarray, roles: dict[str, str]) -> np.ndarray:
-    """The up axis: hips → head when both are mapped, else the world axis of the largest extent."""
-    idx = {n: i for i, n in enumerate(names)}
-    if "hips" in roles and ("head" in roles or "neck" in roles):
-        v = pos[idx[roles.get("head", roles.get("neck"))]] - pos[idx[roles["hips"]]]
-        if np.linalg.norm(v) > 0:
-            return _snap_axis(v)
-    extent = pos.max(axis=0) - pos.min(axis=0)
-    axis = np.zeros(3)
-    k = int(np.argmax(extent))
-    axis[k] = 1.0
-    # the head end is the far end from the heaviest cluster (the legs make the bottom busier)
-    if np.median(pos[:, k]) > 0.5 * (pos[:, k].max() + pos[:, k].min()):
-        axis[k] = -1.0
-    return axis
 
 
 def _snap_axis(v: np.ndarray) -> np.ndarray:
