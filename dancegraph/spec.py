@@ -1,17 +1,30 @@
 """The constraint spec: what a user asks of a dance (DESIGN.md §5).
 
 One pydantic model shared by the API (request validation and ``openapi.yaml``), the CLI
-(``--spec FILE``) and the graph search. Every field has a default, so ``{}`` plus a dataset is a
+(``--spec FILE``) and the graph search, and one validator, :func:`parse_spec`, that every entry
+point (API, ``dancegraph.submit`` task, graph-store service, CLI) calls once. Every field has a default, so ``{}`` plus a dataset is a
 valid spec; unknown fields are rejected (``extra="forbid"``) so typos never pass silently.
 Times are seconds from the start of the song; bar indices count from 0.
 """
 
 from __future__ import annotations
 
+import json
 import re
+from collections.abc import Mapping
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, HttpUrl, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    HttpUrl,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from dancegraph.errors import SpecError, field_errors
 
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
@@ -165,3 +178,80 @@ class Spec(_Strict):
                 ):
                     raise ValueError(f"waypoints[{i}] lies outside the stage")
         return self
+
+
+def parse_spec(data: str | bytes | Mapping | Spec | None, *, dataset: str | None = None) -> Spec:
+    """The one validator of a constraint spec; entry points call it once and pass the ``Spec`` on.
+
+    ``data``: JSON text (``str`` or UTF-8 ``bytes``; blank or None means ``{}``), a decoded JSON
+    object, or a ``Spec`` (re-validated only when ``dataset`` changes it). ``dataset``: when
+    given it replaces the spec's dataset (a graph-store path or ``--dataset`` wins).
+
+    Raises ``SpecError`` (status 422) with ``code`` ``spec_malformed`` (not UTF-8, not JSON, not
+    an object), ``spec_unknown_field`` (a field the model does not know) or ``spec_invalid``;
+    ``field`` is the first failure's path (``spec.weights.rhythm``), ``errors`` all of them.
+    """
+    if isinstance(data, Spec):
+        if dataset is None or dataset == data.dataset:
+            return data
+        data = data.model_dump(mode="json")
+    obj = _decode(data)
+    bad = _nul_path(obj, "spec")
+    if bad is not None:
+        raise SpecError(f"{bad}: text may not contain NUL characters", field=bad)
+    if dataset is not None:
+        obj = {**obj, "dataset": dataset}
+    try:
+        return Spec.model_validate(obj)
+    except ValidationError as exc:
+        errors = field_errors(exc.errors(), prefix="spec")
+        first = errors[0]
+        unknown = any(e["code"] == "extra_forbidden" for e in errors)
+        raise SpecError(
+            f"{first['field']}: {first['message']}",
+            code="spec_unknown_field" if unknown else "spec_invalid",
+            field=first["field"],
+            errors=errors,
+        ) from exc
+
+
+def _decode(data: str | bytes | Mapping | None) -> dict:
+    """The spec as a JSON object (dict), or SpecError ``spec_malformed``."""
+    if isinstance(data, bytes):
+        try:
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise SpecError("spec is not UTF-8 text", code="spec_malformed", field="spec") from exc
+    if data is None or (isinstance(data, str) and data.strip() == ""):
+        return {}
+    if isinstance(data, str):
+        try:
+            data = json.loads(data)
+        except json.JSONDecodeError as exc:
+            raise SpecError(
+                f"spec is not valid JSON: {exc.msg} at char {exc.pos}",
+                code="spec_malformed",
+                field="spec",
+            ) from exc
+    if not isinstance(data, Mapping):
+        raise SpecError("spec must be a JSON object", code="spec_malformed", field="spec")
+    return dict(data)
+
+
+def _nul_path(value: object, path: str) -> str | None:
+    """The first place in a JSON value holding a NUL character (PostgreSQL cannot store one)."""
+    if isinstance(value, str):
+        return path if "\x00" in value else None
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if "\x00" in str(key):
+                return path
+            found = _nul_path(item, f"{path}.{key}")
+            if found is not None:
+                return found
+    if isinstance(value, list):
+        for i, item in enumerate(value):
+            found = _nul_path(item, f"{path}[{i}]")
+            if found is not None:
+                return found
+    return None

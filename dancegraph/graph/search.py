@@ -72,6 +72,11 @@ RECREATE_WEIGHT = 100.0  # per bar whose motif differs from the reference take's
 
 @dataclass
 class Alternative:
+    """One path through the graph: ``nodes`` (T,) node ids and ``index`` (T,) their graph rows,
+    one per music bar; ``cost`` the total C; ``per_bar`` each bar's cost terms; ``violations``
+    the structure pairs it breaks; ``placements`` (T, 3) x, z (metres), yaw (radians) of each
+    bar's first frame; ``choreography`` the motif report when the spec asked for one."""
+
     nodes: list[str]
     index: np.ndarray
     cost: float
@@ -83,6 +88,7 @@ class Alternative:
     def to_dict(self) -> dict:
         return {
             "nodes": self.nodes,
+            "index": np.asarray(self.index, dtype=int).tolist(),
             "cost": round(float(self.cost), 4),
             "per_bar": self.per_bar,
             "violations": self.violations,
@@ -90,17 +96,48 @@ class Alternative:
             "choreography": self.choreography,
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> Alternative:
+        """Rebuild from ``to_dict`` output; KeyError/TypeError/ValueError on another shape."""
+        nodes = [str(n) for n in d["nodes"]]
+        return cls(
+            nodes=nodes,
+            index=np.asarray(d.get("index", []), dtype=np.int64).reshape(-1),
+            cost=float(d["cost"]),
+            per_bar=[dict(row) for row in d.get("per_bar", [])],
+            violations=[dict(v) for v in d.get("violations", [])],
+            placements=np.asarray(d.get("placements", []), dtype=float).reshape(-1, 3),
+            choreography=dict(d.get("choreography") or {}),
+        )
+
 
 @dataclass
 class SearchResult:
+    """A search's answer: the ranked ``alternatives``, the constraint ``report``, and which graph
+    (``graph_name``, ``graph_version``) answered it, so rendering uses that same version."""
+
     alternatives: list[Alternative]
     report: dict
+    graph_name: str = ""
+    graph_version: str = ""
 
     def to_dict(self) -> dict:
         return {
             "alternatives": [a.to_dict() for a in self.alternatives],
             "constraints": self.report,
+            "graph": {"name": self.graph_name, "version": self.graph_version},
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SearchResult:
+        """Rebuild from ``to_dict`` output; KeyError/TypeError/ValueError on another shape."""
+        graph = d.get("graph") or {}
+        return cls(
+            alternatives=[Alternative.from_dict(a) for a in d["alternatives"]],
+            report=dict(d.get("constraints") or {}),
+            graph_name=str(graph.get("name") or ""),
+            graph_version=str(graph.get("version") or ""),
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -747,7 +784,9 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     report["variables"] = int(n_vars)
     report["bars"] = int(n_bars)
     report["music_style"] = music["style_source"]
-    return SearchResult(alternatives=alternatives, report=report)
+    return SearchResult(
+        alternatives=alternatives, report=report, graph_name=graph.name, graph_version=graph.version
+    )
 
 
 def edges_below(graph: MotionGraph, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

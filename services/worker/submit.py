@@ -2,8 +2,8 @@
 
 A pipeline that already speaks Celery can skip HTTP: it sends ``dancegraph.submit`` with a spec,
 an audio file and a tenant, and the job it creates is the same as one made by ``POST /v1/jobs``:
-the same checks (the API's own functions: spec schema, known dataset, size, container sniffing,
-duration limits), the same row, the same queue, the same results and webhook.
+the same checks (the functions the API calls: ``dancegraph.spec.parse_spec``, known dataset,
+size, container sniffing, duration limits; ``services.common``), the same row, the same queue, the same results and webhook.
 
 Where the outcome lands: the ``jobs`` row whose id is the ``job_id`` argument (a UUID the caller
 chooses, so it can poll ``GET /v1/jobs/{job_id}`` right away). A submission refused by the checks
@@ -13,19 +13,19 @@ becomes a ``failed`` job with the check's error code (``spec_invalid``, ``unknow
 
 from __future__ import annotations
 
-import json
 import logging
 import uuid
 from pathlib import Path
 
-from pydantic import ValidationError
 from sqlalchemy import select
 from starlette.datastructures import UploadFile
 
 from dancegraph.errors import DanceGraphError
-from dancegraph.spec import Spec
+from dancegraph.spec import parse_spec
 from dancegraph.store import InvalidKeyError, check_key
 from services import jobs
+from services.common.submit import check_dataset
+from services.common.uploads import check_audio
 from services.config import Settings, get_settings
 from services.db import session_scope
 from services.models import Job, Tenant
@@ -45,30 +45,6 @@ def _tenant_id(session, tenant: str) -> str:
     if row is None:
         raise SubmitError(f"no tenant {tenant!r}", code="unknown_tenant", field="tenant")
     return row.id
-
-
-def _spec(spec: object) -> Spec:
-    from services.api.problems import spec_problem_code, validation_errors
-
-    if isinstance(spec, str):
-        try:
-            spec = json.loads(spec)
-        except json.JSONDecodeError as exc:
-            raise SubmitError(
-                f"spec is not valid JSON: {exc.msg}", code="spec_malformed", field="spec"
-            ) from exc
-    if not isinstance(spec, dict):
-        raise SubmitError("spec must be a JSON object", code="spec_malformed", field="spec")
-    try:
-        return Spec.model_validate(spec)
-    except ValidationError as exc:
-        errors = validation_errors(exc, prefix="spec")
-        first = errors[0]
-        raise SubmitError(
-            f"{first['field']}: {first['message']}",
-            code=spec_problem_code(errors),
-            field=first["field"],
-        ) from exc
 
 
 def _audio_path(settings: Settings, audio: str) -> Path:
@@ -110,9 +86,6 @@ def submit(
     the id to give the job (default: a new UUID); ``idempotency_key``: as the API header — a
     second submission with the same key returns the first job and creates nothing.
     """
-    from services.api.submit import check_dataset
-    from services.api.uploads import check_audio
-
     settings = settings or get_settings()
     job_id = str(uuid.UUID(job_id)) if job_id else str(uuid.uuid4())
     store = pipeline.object_store(settings)
@@ -124,7 +97,7 @@ def submit(
                 raise SubmitError(f"job id {job_id} is taken", code="job_id_taken", field="job_id")
             return existing.id  # a redelivered submit: the job exists already
     try:
-        parsed = _spec(spec)
+        parsed = parse_spec(spec)
         check_dataset(settings, parsed, pipeline.graphstore_client(settings))
         path = _audio_path(settings, audio)
         with open(path, "rb") as fh:

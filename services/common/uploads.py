@@ -1,36 +1,50 @@
-"""Uploads: streamed with byte limits, sniffed by magic bytes, checked by header, then stored.
+"""Audio upload checks shared by the API and the ``dancegraph.submit`` task: size, container
+sniffed by magic bytes, duration read from the header, then the move to the object store.
 
-The request body streams to temporary files (``services.api.multipart``) and is refused (413) at
-the first byte past a limit, so an over-limit upload never fills memory or disk. An audio part is
-then sniffed (the first bytes must name a known audio container, whatever the file name says),
-its header read for the duration (too short / too long), and only then moved to its
-content address (sha256) in the object store. A refused upload leaves nothing in the store.
+An audio file arrives as a :class:`FilePart` (a temporary file in the store's ``tmp/``, hashed
+while it streamed in: ``services.api.multipart``) or as any ``UploadFile`` (copied to one first).
+It is sniffed (the first bytes must name a known audio container, whatever the file name says),
+its header read for the duration (too short / too long), and only then moved to its content
+address (sha256) in the object store. A refused upload leaves nothing in the store.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import tempfile
-from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from fastapi import Request
-from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from dancegraph.errors import AudioError
-from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore, blob_key
-from services.api.multipart import MAX_TEXT_BYTES, FilePart, Form, read_form
-from services.api.problems import ApiError, spec_problem_code, validation_errors
+from services.common.problems import ApiError
 from services.config import Settings
 
-# room for boundaries, part headers and a spec of the largest size around the audio parts
-_FORM_OVERHEAD = MAX_TEXT_BYTES + 256 * 1024
 _SNIFF_BYTES = 64
+
+
+@dataclass
+class FilePart:
+    """One uploaded file, already on disk in a temporary file (``size`` bytes, ``sha256`` hex
+    digest when it was hashed while streaming in, else "")."""
+
+    name: str
+    filename: str
+    path: Path
+    size: int = 0
+    sha256: str = ""
+
+    def read_text(self, limit: int) -> bytes | None:
+        """The file's bytes when at most ``limit`` long, else None."""
+        if self.size > limit:
+            return None
+        return self.path.read_bytes()
+
+    def discard(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def sniff_container(head: bytes) -> str | None:
@@ -103,143 +117,11 @@ class CheckedAudio:
         self.path.unlink(missing_ok=True)
 
 
-async def _limited(stream: AsyncIterator[bytes], limit: int) -> AsyncIterator[bytes]:
-    total = 0
-    async for chunk in stream:
-        total += len(chunk)
-        if total > limit:
-            raise ApiError(
-                413, "upload_too_large", f"the upload is larger than {limit} bytes", field="audio"
-            )
-        yield chunk
-
-
-async def read_multipart(
-    request: Request, settings: Settings, store: ObjectStore, *, max_audio: int
-) -> Form:
-    """Stream a multipart/form-data body to temporary files, refusing it at the first byte past
-    a limit (per file: ``max_upload_bytes``; whole body: that times ``max_audio`` plus room for
-    the form). The caller owns the returned form's temporary files (``Form.discard``)."""
-    ctype = request.headers.get("content-type", "")
-    if not ctype.lower().startswith("multipart/form-data"):
-        raise ApiError(
-            415,
-            "content_type_unsupported",
-            "send multipart/form-data with an 'audio' file part",
-            field="header.Content-Type",
-        )
-    limit = settings.max_upload_bytes * max(1, max_audio) + _FORM_OVERHEAD
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise ApiError(
-            413, "upload_too_large", f"the upload is larger than {limit} bytes", field="audio"
-        )
-    return await read_form(
-        _limited(request.stream(), limit),
-        ctype,
-        store.root / "tmp",
-        max_file_bytes=settings.max_upload_bytes,
-        max_files=max_audio + 1,  # the spec may come as a file part too
-        too_many_code="batch_too_large" if max_audio > 1 else "audio_multiple",
-    )
-
-
-def parse_spec(form: Form, settings: Settings) -> Spec:
-    """The ``spec`` part (a text field, or a file as ``curl -F spec=@spec.json`` sends it) as a
-    validated Spec; absent: all defaults."""
-    raw = form.text("spec")
-    spec_files = form.files_named("spec")
-    if raw is None and spec_files:
-        data_bytes = spec_files[0].read_text(MAX_TEXT_BYTES)
-        if data_bytes is None:
-            raise ApiError(
-                413, "spec_too_large", f"spec is larger than {MAX_TEXT_BYTES} bytes", field="spec"
-            )
-        try:
-            raw = data_bytes.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            raise ApiError(422, "spec_malformed", "spec is not UTF-8 text", field="spec") from exc
-    return validate_spec(raw)
-
-
-def validate_spec(raw: str | dict | None) -> Spec:
-    """A spec given as JSON text (None or blank: ``{}``) or as a decoded object, validated.
-
-    The one spec check of the service: the API and the ``dancegraph.submit`` task both use it,
-    so they refuse the same specs with the same codes (``spec_malformed``, ``spec_invalid``,
-    ``spec_unknown_field``) and field paths (``spec.weights.rhythm``).
-    """
-    if isinstance(raw, dict):
-        data: object = raw
-    elif raw is None or raw.strip() == "":
-        data = {}
-    else:
-        try:
-            data = json.loads(raw)
-        except json.JSONDecodeError as exc:
-            raise ApiError(
-                422,
-                "spec_malformed",
-                f"spec is not valid JSON: {exc.msg} at char {exc.pos}",
-                field="spec",
-            ) from exc
-    if not isinstance(data, dict):
-        raise ApiError(422, "spec_malformed", "spec must be a JSON object", field="spec")
-    bad = _nul_path(data, "spec")
-    if bad is not None:
-        raise ApiError(
-            422, "spec_invalid", f"{bad}: text may not contain NUL characters", field=bad
-        )
-    try:
-        return Spec.model_validate(data)
-    except ValidationError as exc:
-        errors = validation_errors(exc, prefix="spec")
-        first = errors[0]
-        err = ApiError(
-            422,
-            spec_problem_code(errors),
-            f"{first['field']}: {first['message']}",
-            field=first["field"],
-            errors=errors,
-        )
-        raise err from exc
-
-
-def _nul_path(value: object, path: str) -> str | None:
-    """The first place in a JSON value holding a NUL character (PostgreSQL cannot store one)."""
-    if isinstance(value, str):
-        return path if "\x00" in value else None
-    if isinstance(value, dict):
-        for key, item in value.items():
-            if "\x00" in key:
-                return path
-            found = _nul_path(item, f"{path}.{key}")
-            if found is not None:
-                return found
-    if isinstance(value, list):
-        for i, item in enumerate(value):
-            found = _nul_path(item, f"{path}[{i}]")
-            if found is not None:
-                return found
-    return None
-
-
 def safe_filename(name: str | None) -> str:
     """The client's file name, kept only for display: base name, printable characters, ≤ 255."""
     base = (name or "audio").replace("\\", "/").rsplit("/", 1)[-1]
     cleaned = "".join(ch for ch in base if ch.isprintable())
     return cleaned[:255] or "audio"
-
-
-def audio_parts(form: Form) -> list[FilePart]:
-    parts = form.files_named("audio")
-    if not parts:
-        if form.text("audio") is not None:
-            raise ApiError(
-                422, "audio_missing", "'audio' must be a file part, not a text field", field="audio"
-            )
-        raise ApiError(422, "audio_missing", "the request has no 'audio' file part", field="audio")
-    return parts
 
 
 def check_audio(
