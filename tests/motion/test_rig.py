@@ -11,8 +11,8 @@ from dancegraph.motion.fbx import fbx_available
 from dancegraph.motion.rig import (
     REQUIRED_ROLES,
     RigError,
-    build_rig,
     bind_positions,
+    build_rig,
     load_rig,
     map_roles,
     normalize_name,
