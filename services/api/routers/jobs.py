@@ -251,6 +251,39 @@ _MEDIA = {"bvh": "text/plain; charset=utf-8", "fbx": "application/octet-stream"}
 
 
 @router.get(
+    "/{job_id}/alternatives/{k}.rig.{fmt}",
+    summary="Download alternative k on the job's rig (spec output.rig) as BVH, FBX or GLB",
+    response_class=FileResponse,
+    responses={
+        200: {"content": {"application/octet-stream": {}, "text/plain": {}}},
+        **AUTH_ERRORS,
+        404: PROBLEM,
+        409: PROBLEM,
+        422: PROBLEM,
+    },
+)
+def download_alternative_on_rig(
+    job_id: str,
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    fmt: Literal["bvh", "fbx", "glb"] = Path(..., description="file format"),
+    tenant: Tenant = Depends(get_tenant),
+    db: Session = Depends(get_db),
+    store: ObjectStore = Depends(get_store),
+):
+    job = _finished_job(db, tenant, job_id)
+    path = store.path(jobs.result_key(job.id, f"alternatives/{k}.rig.{fmt}"))
+    if not path.is_file():
+        raise ApiError(
+            404,
+            "result_not_found",
+            f"job {job_id} has no alternative {k} on a rig as {fmt} (spec output.rig)",
+            field="k",
+        )
+    media = "model/gltf-binary" if fmt == "glb" else _MEDIA[fmt]
+    return FileResponse(path, media_type=media, filename=f"{job.id}-{k}.rig.{fmt}")
+
+
+@router.get(
     "/{job_id}/alternatives/{k}.{fmt}",
     summary="Download alternative k as BVH or FBX",
     response_class=FileResponse,
