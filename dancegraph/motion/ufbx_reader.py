@@ -6,13 +6,16 @@ the arrays back; a crash or a broken file becomes ``RigError`` (``rig_unreadable
 converts the file to metres, Y up, right-handed.
 
 Joints are the file's bone nodes (``LimbNode``) and every node a skin cluster binds to. A joint's
-bind matrix is its skin cluster's bind matrix where it has one, else the node's own world matrix.
+bind matrix is its skin cluster's bind matrix where it has one, else its parent joint's bind
+matrix times its own transform relative to that parent (so bones without skin, such as end
+bones, follow their parent into the bind pose even when the file was saved in another pose).
 The mesh is every skinned mesh, merged and triangulated (fans), with each vertex's four largest
 weights renormalised.
 """
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -71,7 +74,9 @@ def _matrix(m) -> np.ndarray:
     return out
 
 
-def _read(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - runs in the child
+def _read(path: str, keep: list) -> dict[str, np.ndarray]:  # pragma: no cover - in the child
+    """The rig's arrays. Every ufbx object is appended to ``keep``: the binding crashes when a
+    scene is freed before the objects taken from it, so nothing is freed before ``os._exit``."""
     import ufbx
 
     scene = ufbx.load_file(
@@ -81,10 +86,12 @@ def _read(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - runs in the
         space_conversion=ufbx.SpaceConversion.ADJUST_TRANSFORMS,
     )
     nodes_list = scene.nodes
-    nodes = [nodes_list[i] for i in range(len(nodes_list))]  # keep every object referenced
+    nodes = [nodes_list[i] for i in range(len(nodes_list))]
     meshes_list = scene.meshes
     meshes = [meshes_list[i] for i in range(len(meshes_list))]
+    keep.extend([scene, nodes_list, nodes, meshes_list, meshes])
     bind: dict[int, np.ndarray] = {}
+    skinned: set[int] = set()
     skins = []
     for mesh in meshes:
         deformers = mesh.skin_deformers
@@ -97,20 +104,36 @@ def _read(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - runs in the
             bone = c.bone_node
             if bone is not None:
                 bind.setdefault(bone.typed_id, _matrix(c.bind_to_world))
+                skinned.add(bone.typed_id)
         skins.append((mesh, skin, clusters))
-    joints = [n for n in nodes if n.bone is not None or n.typed_id in bind]
+        keep.extend([deformers, skin, clusters_list, clusters])
+    joints = [n for n in nodes if n.bone is not None or n.typed_id in skinned]
     index = {n.typed_id: k for k, n in enumerate(joints)}
     parents = []
     for n in joints:
         p = n.parent
+        keep.append(p)
         while p is not None and p.typed_id not in index:
             p = p.parent
+            keep.append(p)
         parents.append(-1 if p is None else index[p.typed_id])
-    mats = (
-        np.stack([bind.get(n.typed_id, _matrix(n.node_to_world)) for n in joints])
-        if joints
-        else np.zeros((0, 4, 4))
-    )
+    # a joint without a bind matrix keeps its place relative to its parent joint's bind
+    mats: dict[int, np.ndarray] = {}
+
+    def bind_of(k: int) -> np.ndarray:
+        if k not in mats:
+            n = joints[k]
+            if n.typed_id in bind:
+                mats[k] = bind[n.typed_id]
+            elif parents[k] >= 0:
+                parent = joints[parents[k]]
+                rel = np.linalg.inv(_matrix(parent.node_to_world)) @ _matrix(n.node_to_world)
+                mats[k] = bind_of(parents[k]) @ rel
+            else:
+                mats[k] = _matrix(n.node_to_world)
+        return mats[k]
+
+    mats = np.stack([bind_of(k) for k in range(len(joints))]) if joints else np.zeros((0, 4, 4))
     out = {
         "names": np.array([n.name for n in joints], dtype=str),
         "parents": np.array(parents, dtype=np.int64),
@@ -140,9 +163,9 @@ def _read(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - runs in the
         sv, sw = skin.vertices, skin.weights
         joints_v = np.zeros((len(verts), 4), dtype=np.int64)
         weights_v = np.zeros((len(verts), 4))
-        cluster_joint = [
-            index.get(c.bone_node.typed_id, 0) if c.bone_node is not None else 0 for c in clusters
-        ]
+        bones = [c.bone_node for c in clusters]
+        keep.extend([instances, verts_list, vi, faces_list, sv, sw, bones])
+        cluster_joint = [index.get(b.typed_id, 0) if b is not None else 0 for b in bones]
         for v in range(min(len(verts), len(sv))):
             rec = sv[v]
             ws = sorted(
@@ -170,7 +193,11 @@ def _read(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - runs in the
 
 
 if __name__ == "__main__":  # pragma: no cover - the child process
-    arrays = _read(sys.argv[1])
+    alive: list = []
+    arrays = _read(sys.argv[1], alive)
     tmp = sys.argv[2] + ".tmp.npz"
     np.savez(tmp, **arrays)
     Path(tmp).replace(sys.argv[2])
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)  # the binding can crash while its objects are garbage-collected at exit
