@@ -671,6 +671,7 @@ class RigOutput:
         if self._plan is None or self._plan[0] != key:
             self._plan = (key, plan_retarget(dance.skeleton, self.rig))
         motion, report = retarget(dance, self.rig, self.params, plan=self._plan[1])
+        report["unit_scale"] = self.rig.unit_scale  # the .rig.bvh is in the rig's own units
         files = {}
         for fmt in self.formats:
             rel = f"alternatives/{k}.rig.{fmt}"
