@@ -117,6 +117,44 @@ def _shift_keys(action, slot, frames: float) -> None:
         fcurve.update()
 
 
+def export_fbx(fbx_path: str, object_types: set[str]) -> None:
+    """Write the scene's ``object_types`` as FBX, atomically: metres, Y up, -Z forward, the
+    armature's animation baked on every frame of the scene's range."""
+    out_dir = os.path.dirname(os.path.abspath(fbx_path))
+    os.makedirs(out_dir, exist_ok=True)
+    tmp_path = os.path.join(out_dir, f".tmp-{os.getpid()}-{os.path.basename(fbx_path)}")
+    try:
+        result = bpy.ops.export_scene.fbx(
+            filepath=tmp_path,
+            use_selection=False,
+            object_types=object_types,
+            apply_scale_options="FBX_SCALE_ALL",
+            global_scale=1.0,
+            apply_unit_scale=True,
+            axis_forward="-Z",
+            axis_up="Y",
+            add_leaf_bones=False,
+            primary_bone_axis="Y",
+            secondary_bone_axis="X",
+            armature_nodetype="NULL",
+            bake_anim=True,
+            bake_anim_use_all_bones=True,
+            bake_anim_use_nla_strips=False,
+            bake_anim_use_all_actions=False,
+            bake_anim_force_startend_keying=True,
+            bake_anim_step=1.0,
+            bake_anim_simplify_factor=0.0,
+            use_custom_props=False,
+            path_mode="AUTO",
+        )
+        if "FINISHED" not in result:
+            raise RuntimeError(f"{fbx_path}: Blender's FBX exporter failed ({result})")
+        os.replace(tmp_path, fbx_path)
+    finally:
+        if os.path.exists(tmp_path):
+            os.unlink(tmp_path)
+
+
 def convert(bvh_path: str, fbx_path: str, fps: float | None = None, scale: float = 1.0) -> dict:
     """Import ``bvh_path`` (``scale`` × file units = metres) and write ``fbx_path``; returns a summary."""
     t0 = time.perf_counter()
@@ -158,39 +196,7 @@ def convert(bvh_path: str, fbx_path: str, fps: float | None = None, scale: float
     scene.frame_end = n_frames - 1
     scene.frame_set(0)
 
-    out_dir = os.path.dirname(os.path.abspath(fbx_path))
-    os.makedirs(out_dir, exist_ok=True)
-    tmp_path = os.path.join(out_dir, f".tmp-{os.getpid()}-{os.path.basename(fbx_path)}")
-    try:
-        result = bpy.ops.export_scene.fbx(
-            filepath=tmp_path,
-            use_selection=False,
-            object_types={"ARMATURE"},
-            apply_scale_options="FBX_SCALE_ALL",
-            global_scale=1.0,
-            apply_unit_scale=True,
-            axis_forward="-Z",
-            axis_up="Y",
-            add_leaf_bones=False,
-            primary_bone_axis="Y",
-            secondary_bone_axis="X",
-            armature_nodetype="NULL",
-            bake_anim=True,
-            bake_anim_use_all_bones=True,
-            bake_anim_use_nla_strips=False,
-            bake_anim_use_all_actions=False,
-            bake_anim_force_startend_keying=True,
-            bake_anim_step=1.0,
-            bake_anim_simplify_factor=0.0,
-            use_custom_props=False,
-            path_mode="AUTO",
-        )
-        if "FINISHED" not in result:
-            raise RuntimeError(f"{fbx_path}: Blender's FBX exporter failed ({result})")
-        os.replace(tmp_path, fbx_path)
-    finally:
-        if os.path.exists(tmp_path):
-            os.unlink(tmp_path)
+    export_fbx(fbx_path, {"ARMATURE"})
     return {
         "frames": n_frames,
         "fps": scene.render.fps / scene.render.fps_base,
@@ -353,39 +359,7 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
     scene.frame_end = n_frames - 1
     scene.frame_set(0)
     meshes = [ob for ob in scene.objects if ob.type == "MESH"]
-    out_dir = os.path.dirname(os.path.abspath(fbx_path))
-    os.makedirs(out_dir, exist_ok=True)
-    tmp_path = os.path.join(out_dir, f".tmp-{os.getpid()}-{os.path.basename(fbx_path)}")
-    try:
-        result = bpy.ops.export_scene.fbx(
-            filepath=tmp_path,
-            use_selection=False,
-            object_types={"ARMATURE", "MESH"},
-            apply_scale_options="FBX_SCALE_ALL",
-            global_scale=1.0,
-            apply_unit_scale=True,
-            axis_forward="-Z",
-            axis_up="Y",
-            add_leaf_bones=False,
-            primary_bone_axis="Y",
-            secondary_bone_axis="X",
-            armature_nodetype="NULL",
-            bake_anim=True,
-            bake_anim_use_all_bones=True,
-            bake_anim_use_nla_strips=False,
-            bake_anim_use_all_actions=False,
-            bake_anim_force_startend_keying=True,
-            bake_anim_step=1.0,
-            bake_anim_simplify_factor=0.0,
-            use_custom_props=False,
-            path_mode="AUTO",
-        )
-        if "FINISHED" not in result:
-            raise RuntimeError(f"{fbx_path}: Blender's FBX exporter failed ({result})")
-        os.replace(tmp_path, fbx_path)
-    finally:
-        if os.path.exists(tmp_path):
-            os.unlink(tmp_path)
+    export_fbx(fbx_path, {"ARMATURE", "MESH"})
     return {
         "frames": n_frames,
         "fps": scene.render.fps / scene.render.fps_base,

@@ -37,7 +37,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
 from dancegraph.errors import DanceGraphError
 from dancegraph.motion import quat
-from dancegraph.motion.contacts import foot_contacts, two_bone_ik
+from dancegraph.motion.contacts import _segments, foot_contacts, two_bone_ik
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.rig import (
     LIMB_ROLES,
@@ -105,6 +105,12 @@ def _rotate_all(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return quat.rotate(np.broadcast_to(q, v.shape[:-1] + (4,)), v)
 
 
+def _mapped_offsets(sk: Skeleton, f) -> Skeleton:
+    """``sk`` with ``f`` applied to its offsets and End Sites (a rotation, a change of units)."""
+    ends = {j: f(v) for j, v in sk.end_sites.items()}
+    return Skeleton(sk.names, sk.parents, f(sk.offsets), sk.channels, ends, dict(sk.canonical))
+
+
 def _rest_positions(sk: Skeleton) -> np.ndarray:
     pos = np.zeros((sk.n_joints, 3))
     for j in range(sk.n_joints):
@@ -161,22 +167,8 @@ def plan_retarget(source: Skeleton, rig: Rig, source_roles: RoleMap | None = Non
     tgt_to_canon = np.asarray(rig.to_canonical, dtype=float)
     src_pos = _rotate_all(src_to_canon, src_rest)
     tgt_sk = rig.skeleton
-    target = Skeleton(
-        tgt_sk.names,
-        tgt_sk.parents,
-        _rotate_all(tgt_to_canon, tgt_sk.offsets),
-        tgt_sk.channels,
-        {j: _rotate_all(tgt_to_canon, v) for j, v in tgt_sk.end_sites.items()},
-        dict(tgt_sk.canonical),
-    )
-    src_canon_sk = Skeleton(
-        source.names,
-        source.parents,
-        _rotate_all(src_to_canon, source.offsets),
-        source.channels,
-        {j: _rotate_all(src_to_canon, v) for j, v in source.end_sites.items()},
-        dict(source.canonical),
-    )
+    target = _mapped_offsets(tgt_sk, lambda v: _rotate_all(tgt_to_canon, v))
+    src_canon_sk = _mapped_offsets(source, lambda v: _rotate_all(src_to_canon, v))
     tgt_pos = _rest_positions(target)
     n_t = target.n_joints
     source_joint = np.full(n_t, -1, dtype=np.int64)
@@ -285,12 +277,6 @@ def _point(pos: np.ndarray, g: np.ndarray, joint: int, off: np.ndarray) -> np.nd
     if not np.any(off):
         return pos[:, joint]
     return pos[:, joint] + quat.rotate(g[:, joint], np.broadcast_to(off, pos[:, joint].shape))
-
-
-def _segments(mask: np.ndarray) -> list[tuple[int, int]]:
-    padded = np.concatenate([[False], mask, [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
-    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 def _foot_targets(
@@ -609,18 +595,10 @@ def write_on_rig(
     if suffix == ".bvh":
         from dancegraph.motion.bvh import write_bvh
 
-        sk = motion.skeleton
         k = 1.0 / rig.unit_scale
-        scaled = Skeleton(
-            sk.names,
-            sk.parents,
-            sk.offsets * k,
-            sk.channels,
-            {j: v * k for j, v in sk.end_sites.items()},
-            dict(sk.canonical),
-        )
+        scaled = _mapped_offsets(motion.skeleton, lambda v: v * k)
         write_bvh(Motion(scaled, motion.fps, motion.root_positions * k, motion.rotations), out)
-        return {"frames": motion.n_frames, "joints": sk.n_joints}
+        return {"frames": motion.n_frames, "joints": scaled.n_joints}
     if suffix == ".glb":
         from dancegraph.motion.gltf import write_glb
 

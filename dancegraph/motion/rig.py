@@ -129,24 +129,37 @@ def _fingers(pattern: str, left: str, right: str, names: dict[str, str]) -> dict
 
 
 _FINGER_NAMES = {f: f for f in FINGERS}
+# Mixamo's limb names, also those of CMU's MotionBuilder-friendly layout (LeftUpLeg, ...)
+_MIXAMO_LIMBS = {
+    "{s}_collar": ("{S}shoulder",),
+    "{s}_shoulder": ("{S}arm",),
+    "{s}_elbow": ("{S}forearm",),
+    "{s}_wrist": ("{S}hand",),
+    "{s}_hip": ("{S}upleg",),
+    "{s}_knee": ("{S}leg",),
+    "{s}_ankle": ("{S}foot",),
+    "{s}_toe": ("{S}toebase",),
+}
+
+# SMPL's joint names (left_knee, or L_Knee in some exports); its "foot" is the toe joint
+_SMPL_LIMBS = {
+    f"{{s}}_{part}": (f"{{S}}{name}",)
+    for part, name in (
+        ("collar", "collar"),
+        ("shoulder", "shoulder"),
+        ("elbow", "elbow"),
+        ("wrist", "wrist"),
+        ("hip", "hip"),
+        ("knee", "knee"),
+        ("ankle", "ankle"),
+        ("toe", "foot"),
+    )
+}
 
 #: Name presets: role → candidate joint names (compared after :func:`normalize_name`).
 PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
     "mixamo": {
-        **_sided(
-            {
-                "{s}_collar": ("{S}shoulder",),
-                "{s}_shoulder": ("{S}arm",),
-                "{s}_elbow": ("{S}forearm",),
-                "{s}_wrist": ("{S}hand",),
-                "{s}_hip": ("{S}upleg",),
-                "{s}_knee": ("{S}leg",),
-                "{s}_ankle": ("{S}foot",),
-                "{s}_toe": ("{S}toebase",),
-            },
-            "left",
-            "right",
-        ),
+        **_sided(_MIXAMO_LIMBS, "left", "right"),
         "hips": ("hips",),
         "spine": ("spine",),
         "chest": ("spine1",),
@@ -251,20 +264,7 @@ PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
                 "l",
                 "r",
             ),
-            _sided(
-                {
-                    "{s}_collar": ("{S}shoulder",),
-                    "{s}_shoulder": ("{S}arm",),
-                    "{s}_elbow": ("{S}forearm",),
-                    "{s}_wrist": ("{S}hand",),
-                    "{s}_hip": ("{S}upleg",),
-                    "{s}_knee": ("{S}leg",),
-                    "{s}_ankle": ("{S}foot",),
-                    "{s}_toe": ("{S}toebase",),
-                },
-                "left",
-                "right",
-            ),
+            _sided(_MIXAMO_LIMBS, "left", "right"),  # CMU's ASF/MotionBuilder layout
         ),
         "hips": ("hip", "hips"),
         "spine": ("abdomen", "lowerback"),
@@ -283,36 +283,7 @@ PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
         },
     },
     "smpl": {
-        **_merge(
-            _sided(
-                {
-                    "{s}_collar": ("{S}collar",),
-                    "{s}_shoulder": ("{S}shoulder",),
-                    "{s}_elbow": ("{S}elbow",),
-                    "{s}_wrist": ("{S}wrist",),
-                    "{s}_hip": ("{S}hip",),
-                    "{s}_knee": ("{S}knee",),
-                    "{s}_ankle": ("{S}ankle",),
-                    "{s}_toe": ("{S}foot",),
-                },
-                "left_",
-                "right_",
-            ),
-            _sided(
-                {
-                    "{s}_collar": ("{S}collar",),
-                    "{s}_shoulder": ("{S}shoulder",),
-                    "{s}_elbow": ("{S}elbow",),
-                    "{s}_wrist": ("{S}wrist",),
-                    "{s}_hip": ("{S}hip",),
-                    "{s}_knee": ("{S}knee",),
-                    "{s}_ankle": ("{S}ankle",),
-                    "{s}_toe": ("{S}foot",),
-                },
-                "l_",
-                "r_",
-            ),
-        ),
+        **_merge(_sided(_SMPL_LIMBS, "left_", "right_"), _sided(_SMPL_LIMBS, "l_", "r_")),
         "hips": ("pelvis",),
         "spine": ("spine1",),
         "chest": ("spine2",),

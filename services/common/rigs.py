@@ -114,6 +114,21 @@ def load_stored_rig(store: ObjectStore, row: RigRow) -> tuple[Rig, Path]:
     return load_rig(path, mapping=dict(row.mapping) or None), path
 
 
+def _job_rig(
+    store: ObjectStore, database_url: str, tenant_id: str, rig_id: str
+) -> tuple[Rig, Path]:
+    """A job's rig, loaded; ``RigError`` ``unknown_rig`` when it was deleted after submission."""
+    from services.db import session_scope
+
+    with session_scope(database_url) as session:
+        row = find_rig(session, tenant_id, rig_id)
+        if row is None:
+            raise RigError(
+                f"the rig {rig_id} was deleted", code="unknown_rig", field="spec.output.rig"
+            )
+        return load_stored_rig(store, row)
+
+
 def job_rig_output(store: ObjectStore, database_url: str, tenant_id: str, rig_id: str | None):
     """The render hook that writes a job's alternatives on its rig (BVH and GLB), or None.
 
@@ -123,15 +138,8 @@ def job_rig_output(store: ObjectStore, database_url: str, tenant_id: str, rig_id
     if rig_id is None:
         return None
     from dancegraph.motion.retarget import RigOutput
-    from services.db import session_scope
 
-    with session_scope(database_url) as session:
-        row = find_rig(session, tenant_id, rig_id)
-        if row is None:
-            raise RigError(
-                f"the rig {rig_id} was deleted", code="unknown_rig", field="spec.output.rig"
-            )
-        rig, path = load_stored_rig(store, row)
+    rig, path = _job_rig(store, database_url, tenant_id, rig_id)
     return RigOutput(rig, path, ("bvh", "glb"))
 
 
@@ -141,16 +149,9 @@ def write_rig_fbx(
     """``alternatives/<k>.rig.fbx`` from ``<k>.rig.bvh``: the rig's own file posed in Blender."""
     from dancegraph.motion.bvh import read_bvh
     from dancegraph.motion.retarget import write_on_rig
-    from services.db import session_scope
-
-    with session_scope(database_url) as session:
-        row = find_rig(session, tenant_id, rig_id)
-        if row is None:
-            raise RigError(
-                f"the rig {rig_id} was deleted", code="unknown_rig", field="spec.output.rig"
-            )
-        rig, path = load_stored_rig(store, row)
     from dancegraph.motion.skeleton import Motion
+
+    rig, path = _job_rig(store, database_url, tenant_id, rig_id)
 
     motion = read_bvh(bvh, scale=rig.unit_scale)
     on_rig = Motion(rig.skeleton, motion.fps, motion.root_positions, motion.rotations)
