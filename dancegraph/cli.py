@@ -47,6 +47,14 @@ def _read_spec(path: str | None, dataset: str | None = None) -> Spec:
     return parse_spec(raw, dataset=dataset)
 
 
+def _warm_kernels(*modules: str) -> None:
+    """Compile or load the kernels of ``modules`` (default: all) under the kernel cache's lock,
+    at the start of a command that runs them (``dancegraph.jit``)."""
+    from dancegraph import jit
+
+    jit.warm_kernels(modules or jit.KERNEL_MODULES)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Every command: the domain ones below, then those of the installed command groups."""
     parser = argparse.ArgumentParser(prog="dancegraph", description="Music in, dance out.")
@@ -86,6 +94,7 @@ def _add_analyze(sub) -> None:
     def run(args) -> None:
         from dancegraph.music.analysis import analyze
 
+        _warm_kernels("dancegraph.music.beats")
         result = analyze(args.audio)
         print_json(result.to_dict() if args.json else result.summary())
 
@@ -349,6 +358,7 @@ def _add_synthesize(sub) -> None:
             rig = load_rig(args.rig, mapping=mapping)  # a bad rig fails before any work
             on_rig = RigOutput(rig, args.rig, [*spec.output.formats, "glb"])
         graph = open_graph(ObjectStore(args.store or store_dir()), args.dataset)
+        _warm_kernels()
         done = synthesize(args.audio, graph, spec, args.out, on_rig=on_rig)
         timeline = done["timeline"]
         print_json(
@@ -403,6 +413,7 @@ def _add_eval(sub) -> None:
         from dancegraph.store import ObjectStore
 
         store = ObjectStore(args.store or store_dir())
+        _warm_kernels()
         if args.result:
             from dancegraph.preview import read_timeline
 

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dancegraph import jit
 from dancegraph.embed import descriptor
 from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import _dp, choreography
@@ -343,6 +344,7 @@ def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: S
     distance to each common signature. One matrix product, then one fused pass (the hot path of
     a query).
     """
+    jit.ensure("search")
     w = spec.weights
     zm = zm.astype(np.float32)
     dot = zm @ np.asarray(graph.style, dtype=np.float32).T
@@ -442,9 +444,7 @@ def bar_terms(
 
 def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
-    from dancegraph import jit
-
-    jit.warm_up(music=False)  # compiles into the shared kernel cache only under its lock
+    jit.ensure("search")  # compiles into the shared kernel cache only under its lock
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
     zm, music = music_inputs(music, graph, analysis)
@@ -1042,3 +1042,6 @@ def evaluate(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternati
     from dancegraph.graph.explain import breakdown
 
     return breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
+
+
+jit.register("search", warm_up)

@@ -51,9 +51,9 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         if warm_up:
             from dancegraph import jit
-            from dancegraph.graph import artifact
+            from dancegraph.graph import artifact, search  # noqa: F401  (registers its kernels)
 
-            jit.warm_up(music=False)
+            jit.warm_up(["search"])
             local = graphs()
             for name in artifact.list_graphs(local.store):
                 try:

@@ -147,13 +147,15 @@ def render(
     spec: Spec,
     analysis: MusicAnalysis,
     found: SearchResult,
+    audio: dict[str, str] | None = None,
     on_rig=None,
 ) -> list[str]:
     """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
 
-    FBX is not written here: it is the ``fbx`` queue's work (a warm Blender per worker).
-    ``on_rig``: the hook that also writes each alternative on the job's rig
-    (``services.common.rigs.job_rig_output``).
+    ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
+    ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
+    queue's work (a warm Blender per worker). ``on_rig``: the hook that also writes each
+    alternative on the job's rig (``services.common.rigs.job_rig_output``).
     """
     final = store.path(jobs.result_key(job_id))
     if (final / TIMELINE).is_file():
@@ -167,7 +169,8 @@ def render(
     tmp = store.root / "tmp" / f"job-{job_id}-{uuid.uuid4().hex}"
     tmp.mkdir(parents=True)
     try:
-        render_motion(graph, analysis, found, bvh_spec, tmp, on_rig=on_rig)
+        extra = {"audio": audio} if audio else None
+        render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra, on_rig=on_rig)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         publish_folder(tmp, final, marker=TIMELINE)
     finally:
@@ -297,8 +300,9 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         found = search(settings, spec, terms)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
+        source = {"file": job.audio_filename, "sha256": job.audio_sha256}
         on_rig = job_rig_output(store, settings.database_url, job.tenant_id, spec.output.rig)
-        files = render(store, job_id, spec, analysis, found, on_rig)
+        files = render(store, job_id, spec, analysis, found, source, on_rig)
         beat.check()
         if wants_fbx(spec) and not all(
             p.with_suffix(".fbx").exists()

@@ -26,7 +26,7 @@ import pytest
 from dancegraph.paths import REPO_ROOT
 
 REDIS_HOST, REDIS_PORT = "127.0.0.1", 6379
-REDIS_DB = 11  # a db number of its own: other tests and services use 0
+REDIS_DB = int(os.environ.get("DANCEGRAPH_TEST_REDIS_DB", "11"))
 PG_ADMIN_URL = "postgresql://postgres@127.0.0.1:5432/postgres"
 DATASET = "demo"
 JOB_TIMEOUT_S = 10.0  # the stuck timeout in these tests: the reaper acts within seconds
