@@ -304,6 +304,11 @@ def _add_retarget(sub) -> None:
     p.add_argument(
         "--no-foot-ik", action="store_true", help="transfer rotations only: no foot planting"
     )
+    p.add_argument(
+        "--hand-ik",
+        action="store_true",
+        help="put the hands where the source's are (relative to the hips, scaled) by arm IK",
+    )
 
     def run(args) -> None:
         from dancegraph.motion.bvh import read_bvh
@@ -313,7 +318,8 @@ def _add_retarget(sub) -> None:
         mapping = read_mapping(args.map) if args.map else None
         rig = load_rig(args.rig, mapping=mapping, scale=args.rig_scale)
         source = read_bvh(args.source, scale=args.scale, fps=args.fps)
-        motion, report = retarget(source, rig, RetargetParams(foot_ik=not args.no_foot_ik))
+        params = RetargetParams(foot_ik=not args.no_foot_ik, hand_ik=args.hand_ik)
+        motion, report = retarget(source, rig, params)
         written = write_on_rig(motion, rig, args.rig, args.out)
         print_json({"out": args.out, "written": written, "rig": rig.summary(), "report": report})
 

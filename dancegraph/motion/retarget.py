@@ -57,6 +57,8 @@ class RetargetParams:
     """Parameters of :func:`retarget`.
 
     - ``foot_ik``: plant the feet at the source's contacts and keep them above the floor;
+    - ``hand_ik``: put the wrists where the source's are relative to the hips (scaled by the
+      ratio) by two-bone IK on the arms, instead of where the arms' rotations take them;
     - ``root_scale``: scale of the root's path (None: the hip-height ratio of the two rigs);
     - ``contact_blend_s``: seconds over which a foot correction fades in and out around a contact;
     - ``pelvis_smooth_s``: smoothing (Gaussian sigma, s) of the pelvis drop that lets legs reach;
@@ -64,6 +66,7 @@ class RetargetParams:
     """
 
     foot_ik: bool = True
+    hand_ik: bool = False
     root_scale: float | None = None
     contact_blend_s: float = 0.1
     pelvis_smooth_s: float = 0.08
@@ -95,6 +98,7 @@ class RetargetPlan:
     feet: list[tuple[list[tuple[int, np.ndarray]], np.ndarray]]
     src_feet: list[list[tuple[int, np.ndarray]]]
     legs: list[tuple[int, int, int]]
+    arms: list[tuple[int, int, int, int]]
     limbs: list[tuple[str, int, int, int, int]]
     floor: float
     src_sole: float
@@ -226,6 +230,17 @@ def plan_retarget(source: Skeleton, rig: Rig, source_roles: RoleMap | None = Non
         tuple(target.index(tgt_roles[f"{side}_{p}"]) for p in ("hip", "knee", "ankle"))
         for side in SIDES
     ]
+    arms = [
+        (
+            *(target.index(tgt_roles[f"{side}_{p}"]) for p in ("shoulder", "elbow", "wrist")),
+            source.index(src_roles[f"{side}_wrist"]),
+        )
+        for side in SIDES
+        if all(
+            f"{side}_{p}" in tgt_roles and f"{side}_{p}" in src_roles
+            for p in ("shoulder", "elbow", "wrist")
+        )
+    ]
     limbs = []
     for role in LIMB_ROLES:
         if role in tgt_roles and role in src_roles:
@@ -249,6 +264,7 @@ def plan_retarget(source: Skeleton, rig: Rig, source_roles: RoleMap | None = Non
         feet=feet,
         src_feet=src_feet,
         legs=legs,
+        arms=arms,
         limbs=limbs,
         floor=floor,
         src_sole=src_sole,
@@ -375,7 +391,7 @@ def retarget(
 
     # 4. feet: contacts of the source, pelvis drop where a leg cannot reach, two-bone IK
     contacts = foot_contacts(src_pos, fps, source.skeleton, src_g)
-    feet_report = {}
+    extra_report = {}
     if params.foot_ik:
         blend = max(1, int(round(params.contact_blend_s * fps)))
         corr, weight, anchors = _foot_targets(plan, pos, g, contacts, blend)
@@ -397,35 +413,34 @@ def retarget(
             root[:, 1] -= drop
             pos = _fk(target, root, g)
             corr, weight, anchors = _foot_targets(plan, pos, g, contacts, blend)
-        for side, (hip, knee, ankle) in enumerate(plan.legs):
+        for side, chain in enumerate(plan.legs):
             active = weight[:, side] > 0
-            if not active.any():
-                continue
-            goal = pos[active, ankle] + corr[active, side]
-            new_hip, new_knee = two_bone_ik(
-                pos[active, hip],
-                pos[active, knee],
-                pos[active, ankle],
-                goal,
-                g[active, hip],
-                g[active, knee],
-            )
-            g[active, hip] = new_hip
-            # joints between the thigh and the shin follow the thigh; the knee takes its rotation
-            j = target.parents[knee]
-            while j != hip and j >= 0:
-                g[active, j] = new_hip
-                j = target.parents[j]
-            g[active, knee] = new_knee
-            j = target.parents[ankle]
-            while j != knee and j >= 0:
-                g[active, j] = new_knee
-                j = target.parents[j]
-        _propagate(target, g, driven | _leg_chain_mask(target, plan))
+            if active.any():
+                goal = pos[active, chain[2]] + corr[active, side]
+                _limb_ik(target, g, pos, chain, goal, active)
+        _propagate(target, g, driven | _chain_mask(target, plan.legs))
         pos = _fk(target, root, g)
-        feet_report["pelvis_drop_max_m"] = float(drop.max())
+        extra_report["pelvis_drop_max_m"] = float(drop.max())
     else:
         anchors = np.zeros((n, 2), dtype=np.int64)
+    if params.hand_ik and plan.arms:
+        # the wrists where the source's are, relative to the hips, scaled by the ratio
+        everywhere = np.ones(n, dtype=bool)
+        misses = []
+        for shoulder, elbow, wrist, src_wrist in plan.arms:
+            offset = src_pos_c[:, src_wrist] - src_pos_c[:, plan.src_hips]
+            goal = pos[:, plan.hips] + ratio * offset
+            _limb_ik(target, g, pos, (shoulder, elbow, wrist), goal, everywhere)
+            misses.append(goal)
+        _propagate(target, g, driven | _chain_mask(target, plan.legs + [a[:3] for a in plan.arms]))
+        pos = _fk(target, root, g)
+        err = np.concatenate(
+            [
+                np.linalg.norm(pos[:, a[2]] - goal, axis=1)
+                for a, goal in zip(plan.arms, misses, strict=True)
+            ]
+        )
+        extra_report["hand_error_m"] = {"median": float(np.median(err)), "max": float(err.max())}
 
     # 5. output: local rotations in the rig's axes
     local = g.copy()
@@ -440,21 +455,50 @@ def retarget(
         raise DanceGraphError("retargeting produced non-finite values", code="retarget_failed")
     motion = Motion(rig.skeleton, fps, root_rig, local)
     report = retarget_report(plan, src_pos_c, src_g_c, pos, g, contacts, anchors, fps)
-    report.update(feet_report)
+    report.update(extra_report)
     report["ratio"] = ratio
     report["cpu_seconds"] = round(time.process_time() - t0, 4)
     return motion, report
 
 
-def _leg_chain_mask(target: Skeleton, plan: RetargetPlan) -> np.ndarray:
-    """Joints on the thigh → shin → foot chains (set by the IK; not overwritten by propagation)."""
+def _chain_mask(target: Skeleton, chains) -> np.ndarray:
+    """Joints on the ``(top, middle, end)`` limb chains (set by the IK; kept by propagation)."""
     mask = np.zeros(target.n_joints, dtype=bool)
-    for hip, _knee, ankle in plan.legs:
-        j = ankle
-        while j >= 0 and j != target.parents[hip]:
+    for top, _middle, end in chains:
+        j = end
+        while j >= 0 and j != target.parents[top]:
             mask[j] = True
             j = target.parents[j]
     return mask
+
+
+def _limb_ik(
+    target: Skeleton,
+    g: np.ndarray,
+    pos: np.ndarray,
+    chain: tuple[int, int, int],
+    goal: np.ndarray,
+    active: np.ndarray,
+) -> None:
+    """Two-bone IK on ``chain`` (thigh, shin, foot or upper arm, forearm, hand) at ``active``
+    frames so its end reaches ``goal (A, 3)``; updates ``g`` in place. Joints between the chain's
+    joints (split bones) turn with the bone they sit on; the end keeps its world rotation."""
+    top, middle, end = chain
+    new_top, new_middle = two_bone_ik(
+        pos[active, top],
+        pos[active, middle],
+        pos[active, end],
+        goal,
+        g[active, top],
+        g[active, middle],
+    )
+    g[active, top] = new_top
+    for lower, upper, value in ((middle, top, new_top), (end, middle, new_middle)):
+        j = target.parents[lower]
+        while j != upper and j >= 0:
+            g[active, j] = value
+            j = target.parents[j]
+    g[active, middle] = new_middle
 
 
 def _src_sole(plan: RetargetPlan, pos: np.ndarray, g: np.ndarray) -> np.ndarray:

@@ -319,7 +319,9 @@ def normalize_name(name: str) -> str:
 def _preset_roles(names: list[str]) -> tuple[str | None, dict[str, str]]:
     """The preset that names the most required roles, and the roles it finds."""
     norm: dict[str, str] = {}
-    for n in names:
+    # two joints with one normalised name (Rigify's DEF-thigh.L and ORG-thigh.L): the deforming
+    # one wins, else the first
+    for n in sorted(names, key=lambda n: not n.upper().startswith("DEF-")):
         norm.setdefault(normalize_name(n), n)
     best_name, best, best_score = None, {}, (0, 0)
     for preset, table in PRESETS.items():

@@ -338,3 +338,27 @@ def test_cli_retarget(rig_dir, salsa_dir, tmp_path, capsys):
     assert "rig_zero_length" in capsys.readouterr().err
     assert cli_main([*args[:-1], str(tmp_path / "x.obj")]) == 2
     assert "rig_output_format" in capsys.readouterr().err
+
+
+def test_hand_ik_puts_the_hands_where_the_source_has_them(rig_dir, salsa_clip):
+    """Optional: wrists at the source's place relative to the hips (scaled); off by default."""
+    rig = load_rig(rig_dir / "cmu_cm.bvh")  # arms 1.1 x the template's: rotations alone miss
+    plan = plan_retarget(salsa_clip.skeleton, rig)
+
+    def hand_miss(motion) -> float:
+        pos, _ = forward_kinematics(motion)
+        canon = quat.rotate(np.broadcast_to(rig.to_canonical, pos.shape[:-1] + (4,)), pos)
+        src, _ = forward_kinematics(salsa_clip)
+        src = quat.rotate(np.broadcast_to(plan.src_to_canon, src.shape[:-1] + (4,)), src)
+        miss = []
+        for _s, _e, wrist, src_wrist in plan.arms:
+            goal = canon[:, plan.hips] + plan.ratio * (src[:, src_wrist] - src[:, plan.src_hips])
+            miss.append(np.linalg.norm(canon[:, wrist] - goal, axis=1))
+        return float(np.median(np.concatenate(miss)))
+
+    plain, _ = retarget(salsa_clip, rig)
+    with_ik, report = retarget(salsa_clip, rig, RetargetParams(hand_ik=True))
+    assert hand_miss(plain) > 0.02
+    assert hand_miss(with_ik) < 1e-3 and report["hand_error_m"]["median"] < 1e-3
+    assert np.isfinite(with_ik.rotations).all()
+    assert report["floor_error_m"]["max_abs"] <= 0.01  # the feet are not disturbed
