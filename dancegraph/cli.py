@@ -63,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (
         _add_version,
         _add_convert,
+        _add_retarget,
         _add_synthesize,
         _add_analyze,
         _add_dataset,
@@ -286,6 +287,45 @@ def _add_convert(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_retarget(sub) -> None:
+    p = sub.add_parser(
+        "retarget",
+        help="put a dance (BVH) on your own rig (FBX, GLB or BVH); write BVH, FBX or GLB",
+    )
+    p.add_argument("source", help="the dance, a BVH file (e.g. a synthesize result)")
+    p.add_argument("--rig", required=True, help="the target rig: .fbx, .glb/.gltf or .bvh")
+    p.add_argument("--out", required=True, help="the file to write: .bvh, .fbx or .glb")
+    p.add_argument("--map", default=None, help="joint mapping, JSON/YAML: role -> joint name")
+    p.add_argument("--fps", type=float, default=None, help="source frame rate (default: header)")
+    p.add_argument("--scale", type=float, default=1.0, help="source file units to metres")
+    p.add_argument(
+        "--rig-scale", type=float, default=None, help="rig metres per unit (default: from the file)"
+    )
+    p.add_argument(
+        "--no-foot-ik", action="store_true", help="transfer rotations only: no foot planting"
+    )
+    p.add_argument(
+        "--hand-ik",
+        action="store_true",
+        help="put the hands where the source's are (relative to the hips, scaled) by arm IK",
+    )
+
+    def run(args) -> None:
+        from dancegraph.motion.bvh import read_bvh
+        from dancegraph.motion.retarget import RetargetParams, retarget, write_on_rig
+        from dancegraph.motion.rig import load_rig, read_mapping
+
+        mapping = read_mapping(args.map) if args.map else None
+        rig = load_rig(args.rig, mapping=mapping, scale=args.rig_scale)
+        source = read_bvh(args.source, scale=args.scale, fps=args.fps)
+        params = RetargetParams(foot_ik=not args.no_foot_ik, hand_ik=args.hand_ik)
+        motion, report = retarget(source, rig, params)
+        written = write_on_rig(motion, rig, args.rig, args.out)
+        print_json({"out": args.out, "written": written, "rig": rig.summary(), "report": report})
+
+    p.set_defaults(func=run)
+
+
 def _add_synthesize(sub) -> None:
     p = sub.add_parser(
         "synthesize", help="song → dance: analysis, graph search, render (BVH, FBX, timeline)"
@@ -299,6 +339,10 @@ def _add_synthesize(sub) -> None:
     p.add_argument(
         "--alternatives", type=int, default=None, help="number of alternatives (overrides the spec)"
     )
+    p.add_argument(
+        "--rig", default=None, help="also write each alternative on this rig (.fbx, .glb, .bvh)"
+    )
+    p.add_argument("--map", default=None, help="with --rig: joint mapping file (role -> joint)")
     p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
 
     def run(args) -> None:
@@ -311,9 +355,17 @@ def _add_synthesize(sub) -> None:
         spec = _read_spec(args.spec, dataset=args.dataset)
         if args.alternatives is not None:
             spec = parse_spec({**spec.model_dump(mode="json"), "alternatives": args.alternatives})
+        on_rig = None
+        if args.rig:
+            from dancegraph.motion.retarget import RigOutput
+            from dancegraph.motion.rig import load_rig, read_mapping
+
+            mapping = read_mapping(args.map) if args.map else None
+            rig = load_rig(args.rig, mapping=mapping)  # a bad rig fails before any work
+            on_rig = RigOutput(rig, args.rig, [*spec.output.formats, "glb"])
         graph = open_graph(ObjectStore(args.store or store_dir()), args.dataset)
         _warm_kernels()
-        done = synthesize(args.audio, graph, spec, args.out)
+        done = synthesize(args.audio, graph, spec, args.out, on_rig=on_rig)
         timeline = done["timeline"]
         print_json(
             {

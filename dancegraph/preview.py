@@ -55,9 +55,10 @@ def pose_track(motion: Motion) -> dict:
     }
 
 
-def pose_track_file(bvh_path: str | Path) -> dict:
-    """``pose_track`` of a BVH file (raises ``MotionFileError`` for a bad file)."""
-    return pose_track(read_bvh(bvh_path))
+def pose_track_file(bvh_path: str | Path, scale: float = 1.0) -> dict:
+    """``pose_track`` of a BVH file (``scale``: metres per file unit, e.g. 0.01 for a dance on a
+    rig in centimetres); raises ``MotionFileError`` for a bad file."""
+    return pose_track(read_bvh(bvh_path, scale=scale))
 
 
 def read_timeline(result_dir: str | Path) -> dict:

@@ -227,12 +227,16 @@ def render(
     *,
     exporter=None,
     extra_provenance: dict | None = None,
+    on_rig=None,
 ) -> dict:
     """Write every alternative of ``result`` (the search on ``graph``) into ``out_dir``.
 
     ``analysis``: the song's analysis the search answered. FBX files are written through ``exporter`` (a
     ``dancegraph.motion.fbx.FbxExporter``; default the shared warm one) when the spec asks for
-    them. Returns ``{"files": [paths relative to out_dir], "timeline": {...}}``.
+    them. ``on_rig``: a hook called as ``on_rig(k, dance, out_dir)`` after alternative ``k`` is
+    written on the library skeleton; it returns ``(files, report)`` (the dance on a user's rig:
+    ``dancegraph.motion.retarget.RigOutput``), added to the alternative's files and ``rig``.
+    Returns ``{"files": [paths relative to out_dir], "timeline": {...}}``.
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -286,6 +290,10 @@ def render(
         if "bvh" not in formats:
             (out / bvh_rel).unlink()
             del entry_files["bvh"]
+        rig_report = None
+        if on_rig is not None:
+            rig_files, rig_report = on_rig(k, dance, out)
+            entry_files.update(rig_files)
         files.extend(entry_files.values())
         alt_entries.append(
             {
@@ -299,6 +307,7 @@ def render(
                 "foot_skate": report.get("foot_skate"),
                 "stage": report["stage"],
                 "drift": report["drift"],
+                **({"rig": to_json_types(rig_report)} if rig_report is not None else {}),
                 **{
                     key: to_json_types(v)
                     for key, v in alt.items()
@@ -463,12 +472,13 @@ def synthesize(
     analysis=None,
     sr: int | None = None,
     exporter=None,
+    on_rig=None,
 ) -> dict:
     """Song → dance files: analysis (unless given) → graph search → :func:`render`.
 
     ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). A graph
     built with learned models gets their music terms from the audio (``add_music_terms``; for
-    samples only with ``sr``). Returns render's dict plus ``analysis`` (the summary) and
+    samples only with ``sr``). ``on_rig``: see :func:`render`. Returns render's dict plus ``analysis`` (the summary) and
     ``search`` (``SearchResult.to_dict()``).
     """
     from dancegraph.embed.learned import add_music_terms
@@ -489,5 +499,6 @@ def synthesize(
         out_dir,
         exporter=exporter,
         extra_provenance=source or None,
+        on_rig=on_rig,
     )
     return {**rendered, "analysis": analysis.summary(), "search": found.to_dict()}

@@ -147,6 +147,12 @@ class Output(_Strict):
     formats: list[Format] = Field(default_factory=_all_formats, min_length=1)
     fps: Literal[30, 60] = 30
     foot_cleanup: bool = True
+    rig: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9-]{1,36}$",
+        description="id of one of your rigs (POST /v1/rigs): each alternative is also written on "
+        "it as alternatives/<k>.rig.bvh and .rig.glb (and .rig.fbx when formats has fbx)",
+    )
 
 
 class Spec(_Strict):

@@ -171,3 +171,24 @@ class Dataset(Base):
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     __table_args__ = (UniqueConstraint("name", "version", name="uq_datasets_name_version"),)
+
+
+class Rig(Base):
+    """A tenant's character rig (``POST /v1/rigs``): the file in the object store, its roles."""
+
+    __tablename__ = "rigs"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    tenant_id: Mapped[str] = mapped_column(ForeignKey("tenants.id", ondelete="CASCADE"), index=True)
+    filename: Mapped[str] = mapped_column(String(255))
+    format: Mapped[str] = mapped_column(String(8), comment="fbx, glb or bvh")
+    file_key: Mapped[str] = mapped_column(String(300), comment="object-store key of the file")
+    sha256: Mapped[str] = mapped_column(String(64))
+    size_bytes: Mapped[int] = mapped_column(BigInteger, default=0)
+    mapping: Mapped[dict[str, Any]] = mapped_column(
+        JSONType, default=dict, comment="the user's role → joint overrides"
+    )
+    summary: Mapped[dict[str, Any]] = mapped_column(
+        JSONType, default=dict, comment="roles found, unmapped joints, mesh (Rig.summary)"
+    )
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -20,6 +20,7 @@ import json
 import mimetypes
 import tempfile
 from pathlib import Path
+from typing import Literal
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi import Path as PathParam
@@ -53,9 +54,16 @@ def preview_asset(name: str):
 
 
 def render_page(
-    *, title: str, audio: str, timeline: str, poses: list[str], assets: str = ASSETS_PATH
+    *,
+    title: str,
+    audio: str,
+    timeline: str,
+    poses: list[str],
+    assets: str = ASSETS_PATH,
+    rig_poses: list[str] | None = None,
 ) -> HTMLResponse:
-    """The page with its config: URLs of the song, the timeline and each alternative's poses.
+    """The page with its config: URLs of the song, the timeline and each alternative's poses
+    (``rig_poses``: the same alternatives on the user's rig, when the result has them).
 
     503 ``preview_not_built`` when the front end has not been built.
     """
@@ -67,6 +75,8 @@ def render_page(
             "the preview page is not built on this server: run scripts/install-frontend.sh",
         )
     config = {"title": title, "audio": audio, "timeline": timeline, "poses": poses}
+    if rig_poses:
+        config["rig_poses"] = rig_poses
     # '<' escaped so no string in the config can close the <script> element
     text = json.dumps(config).replace("<", "\\u003c")
     html = template.read_text(encoding="utf-8")
@@ -137,10 +147,22 @@ def pose_cache_key(prefix: str, bvh: Path) -> str:
     return f"{prefix}/{file_sha256(bvh)[:32]}.v{POSE_FORMAT}.json.gz"
 
 
-def pose_json_gz(bvh: Path, k: int, store: ObjectStore, prefix: str) -> bytes:
+def rig_unit_scale(timeline_path: Path, k: int) -> float:
+    """Metres per unit of alternative ``k``'s dance on the rig (its ``rig`` report in the
+    timeline; 1.0 when absent): a rig read from centimetres gets its BVH in centimetres."""
+    try:
+        alt = json.loads(timeline_path.read_text(encoding="utf-8"))["alternatives"][k]
+        return float((alt.get("rig") or {}).get("unit_scale", 1.0))
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return 1.0
+
+
+def pose_json_gz(
+    bvh: Path, k: int, store: ObjectStore, prefix: str, *, scale: float = 1.0
+) -> bytes:
     """Alternative ``k``'s pose track (``dancegraph.preview.pose_track``) as gzip-compressed
-    compact JSON: read from ``store`` when computed before, else computed from ``bvh`` and
-    stored at ``pose_cache_key(prefix, bvh)``.
+    compact JSON: read from ``store`` when computed before, else computed from ``bvh`` (``scale``
+    metres per unit) and stored at ``pose_cache_key(prefix, bvh)``.
 
     404 ``result_not_found`` when ``bvh`` does not exist.
     """
@@ -149,7 +171,7 @@ def pose_json_gz(bvh: Path, k: int, store: ObjectStore, prefix: str) -> bytes:
     key = pose_cache_key(prefix, bvh)
     if store.exists(key):
         return store.get_bytes(key)
-    text = json.dumps(pose_track_file(bvh), separators=(",", ":"))
+    text = json.dumps(pose_track_file(bvh, scale), separators=(",", ":"))
     gz = _gzip(text.encode())
     store.put_bytes(key, gz)
     return gz
@@ -184,6 +206,8 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
     problems.install(app)
     app.include_router(static_router)
 
+    on_rig = (folder / "alternatives" / "0.rig.bvh").is_file()
+
     @app.get("/", response_class=HTMLResponse)
     def page():
         return render_page(
@@ -192,6 +216,9 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
             timeline="timeline.json",
             poses=[f"poses/{k}.json" for k in range(n_alternatives)],
             assets=ASSETS_PATH,
+            rig_poses=[f"poses/{k}.json?skeleton=rig" for k in range(n_alternatives)]
+            if on_rig
+            else None,
         )
 
     @app.get("/timeline.json")
@@ -199,8 +226,18 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
         return json_file_response(request, folder / TIMELINE)
 
     @app.get("/poses/{k}.json")
-    def poses(request: Request, k: int = PathParam(..., ge=0, le=99)):
-        gz = pose_json_gz(folder / "alternatives" / f"{k}.bvh", k, cache, "poses")
+    def poses(
+        request: Request,
+        k: int = PathParam(..., ge=0, le=99),
+        skeleton: Literal["library", "rig"] = "library",
+    ):
+        if skeleton == "rig":
+            scale = rig_unit_scale(folder / TIMELINE, k)
+            gz = pose_json_gz(
+                folder / "alternatives" / f"{k}.rig.bvh", k, cache, "poses", scale=scale
+            )
+        else:
+            gz = pose_json_gz(folder / "alternatives" / f"{k}.bvh", k, cache, "poses")
         return json_response(request, gz)
 
     @app.get("/audio")

@@ -12,6 +12,10 @@ is sent to stderr so it can never corrupt the protocol). The first line the work
 Requests:
 - ``{"id": 1, "op": "convert", "bvh": IN, "fbx": OUT, "fps": 30.0 | null, "scale": 1.0}``
   → ``{"id": 1, "ok": true, "frames": F, "fps": 30.0, "joints": J, "seconds": 0.8}``
+- ``{"id": 4, "op": "animate_rig", "rig": RIG, "anim": NPZ, "fbx": OUT}`` → ``{"id": 4, "ok": true,
+  "frames": F, "fps": 30.0, "joints": J, "meshes": M, "seconds": 1.2}``: the user's rig file (FBX,
+  GLB/glTF or BVH) imported as it is, with its skinned meshes, posed by a retargeted dance and
+  written as FBX (see :func:`animate_rig`);
 - ``{"id": 2, "op": "ping"}`` → ``{"id": 2, "ok": true}``
 - ``{"id": 3, "op": "quit"}`` → ``{"id": 3, "ok": true}`` and the process exits.
 A failed request answers ``{"id": N, "ok": false, "error": "..."}`` and the worker keeps serving.
@@ -89,7 +93,13 @@ def snap_fps(fps: float) -> float:
 
 def clear_scene() -> None:
     """Remove everything a previous conversion left, so each file starts from an empty scene."""
-    for collection in (bpy.data.objects, bpy.data.armatures, bpy.data.actions):
+    for collection in (
+        bpy.data.objects,
+        bpy.data.armatures,
+        bpy.data.actions,
+        bpy.data.meshes,
+        bpy.data.materials,
+    ):
         for item in list(collection):
             collection.remove(item)
 
@@ -105,6 +115,44 @@ def _shift_keys(action, slot, frames: float) -> None:
         buf[0::2] = array.array("f", (x + frames for x in buf[0::2]))
         points.foreach_set("co", buf)
         fcurve.update()
+
+
+def export_fbx(fbx_path: str, object_types: set[str]) -> None:
+    """Write the scene's ``object_types`` as FBX, atomically: metres, Y up, -Z forward, the
+    armature's animation baked on every frame of the scene's range."""
+    out_dir = os.path.dirname(os.path.abspath(fbx_path))
+    os.makedirs(out_dir, exist_ok=True)
+    tmp_path = os.path.join(out_dir, f".tmp-{os.getpid()}-{os.path.basename(fbx_path)}")
+    try:
+        result = bpy.ops.export_scene.fbx(
+            filepath=tmp_path,
+            use_selection=False,
+            object_types=object_types,
+            apply_scale_options="FBX_SCALE_ALL",
+            global_scale=1.0,
+            apply_unit_scale=True,
+            axis_forward="-Z",
+            axis_up="Y",
+            add_leaf_bones=False,
+            primary_bone_axis="Y",
+            secondary_bone_axis="X",
+            armature_nodetype="NULL",
+            bake_anim=True,
+            bake_anim_use_all_bones=True,
+            bake_anim_use_nla_strips=False,
+            bake_anim_use_all_actions=False,
+            bake_anim_force_startend_keying=True,
+            bake_anim_step=1.0,
+            bake_anim_simplify_factor=0.0,
+            use_custom_props=False,
+            path_mode="AUTO",
+        )
+        if "FINISHED" not in result:
+            raise RuntimeError(f"{fbx_path}: Blender's FBX exporter failed ({result})")
+        os.replace(tmp_path, fbx_path)
+    finally:
+        if os.path.exists(tmp_path):
+            os.unlink(tmp_path)
 
 
 def convert(bvh_path: str, fbx_path: str, fps: float | None = None, scale: float = 1.0) -> dict:
@@ -148,43 +196,175 @@ def convert(bvh_path: str, fbx_path: str, fps: float | None = None, scale: float
     scene.frame_end = n_frames - 1
     scene.frame_set(0)
 
-    out_dir = os.path.dirname(os.path.abspath(fbx_path))
-    os.makedirs(out_dir, exist_ok=True)
-    tmp_path = os.path.join(out_dir, f".tmp-{os.getpid()}-{os.path.basename(fbx_path)}")
-    try:
-        result = bpy.ops.export_scene.fbx(
-            filepath=tmp_path,
-            use_selection=False,
-            object_types={"ARMATURE"},
-            apply_scale_options="FBX_SCALE_ALL",
-            global_scale=1.0,
-            apply_unit_scale=True,
-            axis_forward="-Z",
-            axis_up="Y",
-            add_leaf_bones=False,
-            primary_bone_axis="Y",
-            secondary_bone_axis="X",
-            armature_nodetype="NULL",
-            bake_anim=True,
-            bake_anim_use_all_bones=True,
-            bake_anim_use_nla_strips=False,
-            bake_anim_use_all_actions=False,
-            bake_anim_force_startend_keying=True,
-            bake_anim_step=1.0,
-            bake_anim_simplify_factor=0.0,
-            use_custom_props=False,
-            path_mode="AUTO",
-        )
-        if "FINISHED" not in result:
-            raise RuntimeError(f"{fbx_path}: Blender's FBX exporter failed ({result})")
-        os.replace(tmp_path, fbx_path)
-    finally:
-        if os.path.exists(tmp_path):
-            os.unlink(tmp_path)
+    export_fbx(fbx_path, {"ARMATURE"})
     return {
         "frames": n_frames,
         "fps": scene.render.fps / scene.render.fps_base,
         "joints": len(armature.data.bones),
+        "seconds": round(time.perf_counter() - t0, 4),
+    }
+
+
+# Blender's world (Z up, -Y forward) → the Y-up frame of the BVH and glTF conventions, in which
+# DanceGraph hands over rigs and dances: (x, y, z) → (x, z, -y).
+_TO_Y_UP = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+
+
+def _import_rig(path: str, unit_scale: float):
+    """Import a rig file into the empty scene; returns its armature object (the one with most bones)."""
+    suffix = os.path.splitext(path)[1].lower()
+    if suffix == ".fbx":
+        result = bpy.ops.import_scene.fbx(
+            filepath=path, use_anim=False, automatic_bone_orientation=False, ignore_leaf_bones=False
+        )
+    elif suffix in (".glb", ".gltf"):
+        result = bpy.ops.import_scene.gltf(filepath=path)
+    elif suffix == ".bvh":
+        result = bpy.ops.import_anim.bvh(
+            filepath=path,
+            global_scale=unit_scale,
+            axis_forward="-Z",
+            axis_up="Y",
+            rotate_mode="NATIVE",
+        )
+    else:
+        raise ValueError(f"{path}: not a rig file (fbx, glb, gltf, bvh)")
+    if "FINISHED" not in result:
+        raise RuntimeError(f"{path}: Blender could not import the rig ({result})")
+    armatures = [ob for ob in bpy.context.scene.objects if ob.type == "ARMATURE"]
+    if not armatures:
+        raise RuntimeError(f"{path}: no armature after import")
+    return max(armatures, key=lambda ob: len(ob.data.bones))
+
+
+def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
+    """Pose the rig in ``rig_path`` by the dance in ``anim_path`` and write ``fbx_path``.
+
+    ``anim_path`` (numpy ``.npz``): ``names (J,)`` joint names, ``g (F, J, 4)`` each joint's world
+    rotation from its bind pose (x, y, z, w; Y-up frame), ``positions (F, J, 3)`` world joint
+    positions (m, Y-up frame), ``fps``, ``unit_scale`` (metres per unit of a BVH rig). A bone
+    turns by its joint's world rotation from bind: its pose is ``Rest⁻¹ · G_parent⁻¹ · G · Rest``
+    in its own rest frame (``Rest``: its rest orientation in the Y-up world); a root bone also
+    moves to its joint's position. Bones without a joint keep their bind pose to their parent.
+    """
+    import numpy as np
+    from mathutils import Matrix
+
+    t0 = time.perf_counter()
+    data = np.load(anim_path, allow_pickle=False)
+    names = [str(n) for n in data["names"]]
+    g = np.asarray(data["g"], dtype=float)
+    positions = np.asarray(data["positions"], dtype=float)
+    fps = float(data["fps"])
+    n_frames = g.shape[0]
+    clear_scene()
+    scene = bpy.context.scene
+    armature = _import_rig(rig_path, float(data["unit_scale"]))
+    if armature.animation_data is not None:
+        armature.animation_data_clear()
+    to_y = Matrix(_TO_Y_UP).to_4x4()
+    world = to_y @ armature.matrix_world  # armature space → Y-up world
+    index = {n: i for i, n in enumerate(names)}
+    bones = list(armature.data.bones)
+
+    def as_wxyz(q):  # (..., 4) xyzw → wxyz
+        return np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+
+    def qmul(a, b):  # xyzw products, broadcast
+        ax, ay, az, aw = np.moveaxis(a, -1, 0)
+        bx, by, bz, bw = np.moveaxis(b, -1, 0)
+        return np.stack(
+            [
+                aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx,
+                aw * bz + ax * by - ay * bx + az * bw,
+                aw * bw - ax * bx - ay * by - az * bz,
+            ],
+            axis=-1,
+        )
+
+    def conj(q):
+        return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+    def quat_of(m):
+        q = m.to_quaternion()
+        return np.array([q.x, q.y, q.z, q.w])
+
+    # world rotation from bind of every bone: its joint's, else its parent's (it follows)
+    g_bone: dict[str, np.ndarray] = {}
+    identity = np.tile([0.0, 0.0, 0.0, 1.0], (n_frames, 1))
+    for bone in bones:  # Blender lists parents before children
+        if bone.name in index:
+            g_bone[bone.name] = g[:, index[bone.name]]
+        else:
+            g_bone[bone.name] = g_bone[bone.parent.name] if bone.parent else identity
+    action = bpy.data.actions.new("dance")
+    armature.animation_data_create()
+    armature.animation_data.action = action
+    frames = np.arange(n_frames, dtype=float)
+    keyed = 0
+    for bone in bones:
+        pb = armature.pose.bones[bone.name]
+        pb.rotation_mode = "QUATERNION"
+        rest_w = world @ bone.matrix_local
+        rest = quat_of(rest_w)
+        g_parent = g_bone[bone.parent.name] if bone.parent else identity
+        local = qmul(conj(g_parent), g_bone[bone.name])
+        basis = qmul(qmul(conj(rest), local), rest)
+        basis = as_wxyz(basis / np.linalg.norm(basis, axis=-1, keepdims=True))
+        flips = np.cumsum(np.sum(basis[1:] * basis[:-1], axis=-1) < 0) % 2
+        basis[1:][flips.astype(bool)] *= -1.0
+        curves = [
+            (f'pose.bones["{bone.name}"].rotation_quaternion', k, basis[:, k]) for k in range(4)
+        ]
+        if bone.parent is None and bone.name in index:
+            # the root bone's world transform from bind, X = [G | p - G p_rest], in its rest frame
+            rest4 = np.array(rest_w)
+            x, y, z, w = np.moveaxis(g_bone[bone.name], -1, 0)
+            rg = np.stack(
+                [
+                    np.stack(
+                        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1
+                    ),
+                    np.stack(
+                        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1
+                    ),
+                    np.stack(
+                        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1
+                    ),
+                ],
+                axis=1,
+            )
+            xf = np.tile(np.eye(4), (n_frames, 1, 1))
+            xf[:, :3, :3] = rg
+            xf[:, :3, 3] = positions[:, index[bone.name]] - rg @ rest4[:3, 3]
+            loc = (np.linalg.inv(rest4)[None] @ xf @ rest4[None])[:, :3, 3]
+            curves += [(f'pose.bones["{bone.name}"].location', k, loc[:, k]) for k in range(3)]
+        for data_path, k, values in curves:
+            fc = action.fcurve_ensure_for_datablock(armature, data_path, index=k)
+            fc.keyframe_points.add(n_frames)
+            co = np.empty(2 * n_frames, dtype=np.float32)
+            co[0::2] = frames
+            co[1::2] = values
+            fc.keyframe_points.foreach_set("co", co)
+            fc.keyframe_points.foreach_set(
+                "interpolation",
+                np.full(n_frames, 1, dtype=np.int32),  # LINEAR
+            )
+            fc.update()
+        keyed += 1
+    scene.render.fps = max(1, int(round(fps)))
+    scene.render.fps_base = scene.render.fps / fps
+    scene.frame_start = 0
+    scene.frame_end = n_frames - 1
+    scene.frame_set(0)
+    meshes = [ob for ob in scene.objects if ob.type == "MESH"]
+    export_fbx(fbx_path, {"ARMATURE", "MESH"})
+    return {
+        "frames": n_frames,
+        "fps": scene.render.fps / scene.render.fps_base,
+        "joints": keyed,
+        "meshes": len(meshes),
         "seconds": round(time.perf_counter() - t0, 4),
     }
 
@@ -218,6 +398,9 @@ def serve() -> int:
                 summary = convert(
                     str(req["bvh"]), str(req["fbx"]), req.get("fps"), req.get("scale") or 1.0
                 )
+                _send({"id": req_id, "ok": True, **summary})
+            elif op == "animate_rig":
+                summary = animate_rig(str(req["rig"]), str(req["anim"]), str(req["fbx"]))
                 _send({"id": req_id, "ok": True, **summary})
             elif op == "ping":
                 _send({"id": req_id, "ok": True})

@@ -264,6 +264,28 @@ class FbxExporter:
             )
         return {k: reply[k] for k in ("frames", "fps", "joints", "seconds") if k in reply}
 
+    def animate_rig(
+        self, rig_path: str | os.PathLike, anim_path: str | os.PathLike, fbx_path: str | os.PathLike
+    ) -> dict:
+        """Pose the rig file ``rig_path`` by the dance in ``anim_path`` (see ``blender_worker``'s
+        ``animate_rig``) and write ``fbx_path`` with the rig's meshes; returns the worker's summary.
+        """
+        fbx = Path(fbx_path).resolve()
+        fbx.parent.mkdir(parents=True, exist_ok=True)
+        payload = {
+            "op": "animate_rig",
+            "rig": str(Path(rig_path).resolve()),
+            "anim": str(Path(anim_path).resolve()),
+            "fbx": str(fbx),
+        }
+        with self._lock:
+            reply = self._request(payload, self.convert_timeout_s)
+        if not reply.get("ok"):
+            raise FbxError(
+                f"FBX export on the rig {Path(rig_path).name} failed: {reply.get('error')}"
+            )
+        return {k: reply[k] for k in ("frames", "fps", "joints", "meshes", "seconds") if k in reply}
+
 
 def _pump(stream, sink, mark_end: bool) -> None:
     """Copy lines from a child's pipe to ``sink``; then ``None`` marks the end if ``mark_end``."""

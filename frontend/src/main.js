@@ -15,7 +15,8 @@ const state = {
   ready: false,
   error: null,
   timeline: null,
-  tracks: [], // per alternative: Promise of {fps, frames, joints, parents, positions: Float32Array (m)}
+  tracks: {}, // per pose URL: Promise of {fps, frames, joints, parents, positions: Float32Array (m)}
+  skeleton: "library", // or "rig" where the job was also written on the user's rig
   track: null,
   alternative: 0,
   bar: -1,
@@ -338,14 +339,24 @@ function seek(t) {
   audio.currentTime = Math.min(Math.max(t, 0), duration());
 }
 
+// the skeleton shown: the motion library's, or the user's rig (config.rig_poses, spec output.rig)
+function poseUrl(k) {
+  return state.skeleton === "rig" && config.rig_poses ? config.rig_poses[k] : config.poses[k];
+}
+
 async function loadTrack(k) {
-  if (!state.tracks[k]) {
-    state.tracks[k] = getJson(config.poses[k]).then((raw) => {
+  const url = poseUrl(k);
+  if (!state.tracks[url]) {
+    state.tracks[url] = getJson(url).then((raw) => {
       const scale = raw.unit === "mm" ? 0.001 : 1;
       return { ...raw, positions: Float32Array.from(raw.positions, (v) => v * scale) };
     });
   }
-  return state.tracks[k];
+  return state.tracks[url];
+}
+
+function sameSkeleton(a, b) {
+  return a && b && a.joints.length === b.joints.length && a.joints.every((n, i) => n === b.joints[i]);
 }
 
 async function setAlternative(k) {
@@ -353,7 +364,7 @@ async function setAlternative(k) {
   const track = await loadTrack(k);
   state.alternative = k;
   $("alternative").value = String(k);
-  if (!state.track || state.track.joints.length !== track.joints.length) buildSkeleton(track);
+  if (!sameSkeleton(state.track, track)) buildSkeleton(track);
   if (!framedBox) {
     framedBox = trackBox(track);
     frameBox(framedBox);
@@ -392,6 +403,13 @@ function wireControls() {
   audio.addEventListener("ended", () => (play.textContent = "Play"));
   $("seek").addEventListener("input", (e) => seek(Number(e.target.value)));
   $("alternative").addEventListener("change", (e) => setAlternative(e.target.value).catch(fail));
+  if (config.rig_poses) {
+    $("skeleton-label").hidden = false;
+    $("skeleton").addEventListener("change", (e) => {
+      state.skeleton = e.target.value;
+      setAlternative(state.alternative).catch(fail);
+    });
+  }
   window.addEventListener("keydown", (e) => {
     if (e.code === "Space" && e.target === document.body) {
       e.preventDefault();

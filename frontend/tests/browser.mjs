@@ -6,7 +6,8 @@
 //
 // Observed: console errors, page errors and failed requests; non-background canvas pixels;
 // the pose at two seek times; the clock and pose after real playback; the pose after switching
-// the alternative at SWITCH_TIME_S; the cost breakdown shown after clicking a bar.
+// the alternative at SWITCH_TIME_S; the pose on the user's rig where the page offers it; the cost
+// breakdown shown after clicking a bar.
 import { chromium } from "playwright-core";
 
 const [url, screenshot, switchTimeArg] = process.argv.slice(2);
@@ -114,6 +115,17 @@ try {
       pose: window.__preview.pose(),
     })),
   };
+  // a result on the user's rig: the Skeleton select switches to the rig's joints
+  out.rig = null;
+  if (await page.evaluate(() => !document.getElementById("skeleton-label").hidden)) {
+    const before = await page.evaluate(() => window.__preview.pose().length);
+    await page.selectOption("#skeleton", "rig");
+    await page.waitForFunction((n) => window.__preview.pose().length !== n, before, { timeout: 20000 });
+    await frames();
+    out.rig = { before, after: await page.evaluate(() => window.__preview.pose()) };
+    await page.selectOption("#skeleton", "library");
+    await page.waitForFunction((n) => window.__preview.pose().length === n, before, { timeout: 20000 });
+  }
   // clicking a bar shows its cost breakdown
   await page.click('#bars .bar[data-bar="1"]');
   out.breakdown = await page.evaluate(() => {

@@ -20,7 +20,7 @@ from dancegraph import __version__
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 from services.api import metrics
-from services.api.routers import batches, datasets, health, jobs, preview
+from services.api.routers import batches, datasets, health, jobs, preview, rigs
 from services.common import problems
 from services.config import Settings, get_settings
 from services.preview_server import static_router
@@ -138,12 +138,13 @@ def create_app(
             {"name": "preview", "description": "watch a job's dance on its song in the browser"},
             {"name": "batches", "description": "many songs, one spec"},
             {"name": "datasets", "description": "motion libraries with built graphs"},
+            {"name": "rigs", "description": "your own characters, to retarget the dance onto"},
             {"name": "health", "description": "liveness, readiness, metrics"},
         ],
     )
     app.state.ctx = ctx
     problems.install(app)
-    for module in (jobs, preview, batches, datasets, health):
+    for module in (jobs, preview, batches, datasets, rigs, health):
         app.include_router(module.router)
     app.include_router(static_router)
 

@@ -110,3 +110,28 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     status: Literal["ready", "not_ready"]
     checks: dict[str, str] = Field(..., description="component → 'ok' or the reason it is not")
+
+
+class RigOut(BaseModel):
+    """A character rig: the humanoid roles found on it and what was left unmapped."""
+
+    id: str
+    filename: str
+    format: Literal["fbx", "glb", "bvh"]
+    created_at: UtcDatetime
+    size_bytes: int
+    joints: int = Field(..., description="joints in the hips' hierarchy")
+    root: str
+    roles: dict[str, str] = Field(..., description="humanoid role → joint name")
+    how: dict[str, str] = Field(
+        ..., description="per role: 'user', 'preset:<name>' (mixamo, unreal, ...) or 'structure'"
+    )
+    unmapped: list[str] = Field(..., description="joints that keep their bind pose (twist, face)")
+    missing_optional: list[str] = Field(..., description="optional roles the rig has no joint for")
+    mapping: dict[str, str] = Field(..., description="the mapping sent with the upload")
+    height_m: float
+    mesh: dict[str, int] | None = Field(None, description="the skinned mesh: vertices, triangles")
+
+
+class RigList(BaseModel):
+    items: list[RigOut]

@@ -35,6 +35,22 @@ def spec_json(spec: Spec) -> dict:
     return spec.model_dump(mode="json")
 
 
+def check_rig(settings: Settings, tenant_id: str, spec: Spec) -> None:
+    """422 ``unknown_rig`` when ``spec.output.rig`` names no rig of this tenant."""
+    if spec.output.rig is None:
+        return
+    from services.common.rigs import find_rig
+
+    with session_scope(settings.database_url) as session:
+        if find_rig(session, tenant_id, spec.output.rig) is None:
+            raise ApiError(
+                422,
+                "unknown_rig",
+                f"you have no rig {spec.output.rig!r} (POST /v1/rigs first)",
+                field="spec.output.rig",
+            )
+
+
 def submit_job(
     settings: Settings,
     store: ObjectStore,
@@ -48,6 +64,7 @@ def submit_job(
 ) -> tuple[Job, bool]:
     """Validate, store and enqueue one job; returns ``(job, created)`` (False: idempotent replay)."""
     check_dataset(settings, spec, graphstore)
+    check_rig(settings, tenant_id, spec)
     checked = check_audio(upload, settings, store)
     spec_dict = spec_json(spec)
     try:
@@ -113,6 +130,7 @@ def submit_batch(
             field="audio",
         )
     check_dataset(settings, spec, graphstore)
+    check_rig(settings, tenant_id, spec)
     spec_dict = spec_json(spec)
     if idempotency_key is not None:
         with session_scope(settings.database_url) as session:

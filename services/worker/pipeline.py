@@ -35,6 +35,7 @@ from dancegraph.music.analysis import MusicAnalysis
 from dancegraph.spec import Spec, parse_spec
 from dancegraph.store import ObjectStore
 from services import jobs
+from services.common.rigs import job_rig_output, write_rig_fbx
 from services.config import Settings, get_settings
 from services.db import session_scope
 from services.graphstore.client import GraphStoreClient
@@ -147,12 +148,14 @@ def render(
     analysis: MusicAnalysis,
     found: SearchResult,
     audio: dict[str, str] | None = None,
+    on_rig=None,
 ) -> list[str]:
     """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
 
     ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
     ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
-    queue's work (a warm Blender per worker).
+    queue's work (a warm Blender per worker). ``on_rig``: the hook that also writes each
+    alternative on the job's rig (``services.common.rigs.job_rig_output``).
     """
     final = store.path(jobs.result_key(job_id))
     if (final / TIMELINE).is_file():
@@ -167,7 +170,7 @@ def render(
     tmp.mkdir(parents=True)
     try:
         extra = {"audio": audio} if audio else None
-        render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra)
+        render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra, on_rig=on_rig)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         publish_folder(tmp, final, marker=TIMELINE)
     finally:
@@ -209,22 +212,33 @@ def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
     return [key[len(prefix) + 1 :] for key in store.list(prefix)]
 
 
-def bvh_files(store: ObjectStore, job_id: str) -> list[Path]:
+def bvh_files(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[Path]:
+    """The library-skeleton ``<k>.bvh`` files (``rig``: the ``<k>.rig.bvh`` ones) of a job."""
     folder = store.path(jobs.result_key(job_id, "alternatives"))
-    return sorted(folder.glob("*.bvh"), key=lambda p: p.name)
+    found = folder.glob("*.rig.bvh" if rig else "*.bvh")
+    return sorted(
+        (p for p in found if rig or not p.name.endswith(".rig.bvh")), key=lambda p: p.name
+    )
 
 
-def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None) -> list[str]:
-    """Write ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there)."""
+def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
+    """Write ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there), and
+    with ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``."""
     from services.worker import fbx_export
 
-    for i, bvh in enumerate(bvh_files(store, job_id)):
+    todo = [(b, None) for b in bvh_files(store, job_id)]
+    if on_rig is not None:
+        todo += [(b, on_rig) for b in bvh_files(store, job_id, rig=True)]
+    for i, (bvh, writer) in enumerate(todo):
         fbx = bvh.with_suffix(".fbx")
         if fbx.exists():
             continue
         tmp = bvh.with_name(f".tmp-{uuid.uuid4().hex}-{fbx.name}")
         try:
-            fbx_export.export(bvh, tmp, fps=fps)
+            if writer is None:
+                fbx_export.export(bvh, tmp, fps=fps)
+            else:
+                writer(bvh, tmp)
             os.replace(tmp, fbx)
         finally:
             tmp.unlink(missing_ok=True)
@@ -287,10 +301,12 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
         source = {"file": job.audio_filename, "sha256": job.audio_sha256}
-        files = render(store, job_id, spec, analysis, found, source)
+        on_rig = job_rig_output(store, settings.database_url, job.tenant_id, spec.output.rig)
+        files = render(store, job_id, spec, analysis, found, source, on_rig)
         beat.check()
         if wants_fbx(spec) and not all(
-            p.with_suffix(".fbx").exists() for p in bvh_files(store, job_id)
+            p.with_suffix(".fbx").exists()
+            for p in bvh_files(store, job_id) + bvh_files(store, job_id, rig=True)
         ):
             state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
             return RunOutcome("fbx_queued", files)
@@ -309,15 +325,23 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "fbx", STAGES["fbx"])
-        n = max(1, len(bvh_files(store, job_id)))
+        n = max(1, len(bvh_files(store, job_id)) + len(bvh_files(store, job_id, rig=True)))
         span = STAGES["finalize"] - STAGES["fbx"]
 
         def on_file(i: int) -> None:
             beat.check()
             state.progress(job_id, "fbx", STAGES["fbx"] + span * (i + 1) / n)
 
-        fps = float(parse_spec(job.spec).output.fps)
-        files = export_fbx(store, job_id, fps, on_file)
+        spec = parse_spec(job.spec)
+        on_rig = None
+        if spec.output.rig is not None:
+
+            def on_rig(bvh: Path, fbx: Path) -> None:
+                write_rig_fbx(
+                    store, settings.database_url, job.tenant_id, spec.output.rig, bvh, fbx
+                )
+
+        files = export_fbx(store, job_id, float(spec.output.fps), on_file, on_rig)
         state.progress(job_id, "finalize", STAGES["finalize"])
     finalize(store, job_id)
     return RunOutcome("succeeded", files)

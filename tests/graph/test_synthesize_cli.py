@@ -84,3 +84,36 @@ def test_synthesize_errors_are_clear(setup, capsys, tmp_path: Path):
     assert demo_cli("synthesize", junk, store, tmp_path / "o2") == 2
     assert "audio_" in capsys.readouterr().err
     assert not (tmp_path / "o").exists() and not (tmp_path / "o2").exists()
+
+
+def test_synthesize_on_a_rig(setup, capsys, tmp_path: Path):
+    """``--rig``: every alternative also on the user's rig (BVH and GLB here), beside the library's."""
+    from dancegraph.motion.rig import load_rig
+    from tests.motion.rigs import make_rigs
+
+    root, store, wav, _ = setup
+    rigs = make_rigs(tmp_path / "rigs", blender=False)
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"seed": 2, "output": {"formats": ["bvh"], "fps": 30}}))
+    out = tmp_path / "out"
+    rc = demo_cli(
+        "synthesize", wav, store, out, "--spec", str(spec), "--alternatives", "1",
+        "--rig", str(rigs / "cmu_cm.bvh"),
+    )  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    printed = json.loads(capsys.readouterr().out)
+    assert (
+        "alternatives/0.rig.bvh" in printed["files"]
+        and "alternatives/0.rig.glb" in printed["files"]
+    )
+    library = read_bvh(out / "alternatives/0.bvh")
+    on_rig = read_bvh(out / "alternatives/0.rig.bvh", scale=0.01)
+    rig = load_rig(rigs / "cmu_cm.bvh")
+    assert on_rig.skeleton.names == rig.skeleton.names and on_rig.n_frames == library.n_frames
+    entry = json.loads((out / "timeline.json").read_text())["alternatives"][0]
+    assert entry["files"]["rig.glb"] == "alternatives/0.rig.glb"
+    assert entry["rig"]["floor_error_m"]["max_abs"] <= 0.01
+    assert entry["rig"]["direction_error_deg"]["median"] <= 5.0
+    bad = ["--rig", str(rigs / "bad_zero_length.bvh")]
+    assert demo_cli("synthesize", wav, store, tmp_path / "o2", *bad) == 2
+    assert "rig_zero_length" in capsys.readouterr().err

@@ -344,3 +344,38 @@ def test_preview_command_serves_until_interrupted(result, built, tmp_path):
     assert proc.returncode == 0, err[-2000:]
     assert f"http://127.0.0.1:{port}/" in out
     assert not list(tmp_path.glob("dancegraph-preview-*"))
+
+
+def test_preview_shows_the_dance_on_the_rig(result, built, tmp_path):
+    """A result with ``<k>.rig.bvh`` files: the page offers the rig's skeleton, in metres."""
+    from fastapi.testclient import TestClient
+
+    from dancegraph.motion.retarget import RigOutput
+    from dancegraph.motion.rig import load_rig
+    from services.preview_server import create_local_app
+    from tests.motion.rigs import make_rigs
+
+    out = tmp_path / "out"
+    shutil.copytree(result / "out", out)
+    rig_path = make_rigs(tmp_path / "rigs", blender=False) / "cmu_cm.bvh"  # centimetres
+    rig = load_rig(rig_path)
+    hook = RigOutput(rig, rig_path, ["bvh"])
+    timeline = json.loads((out / "timeline.json").read_text())
+    for k in range(2):
+        _, report = hook(k, read_bvh(out / f"alternatives/{k}.bvh"), out)
+        timeline["alternatives"][k]["rig"] = report
+    (out / "timeline.json").write_text(json.dumps(timeline))
+    with TestClient(create_local_app(out, result / "song.wav")) as client:
+        config = page_config(client.get("/").text)
+        assert config["poses"] == ["poses/0.json", "poses/1.json"]
+        assert config["rig_poses"] == ["poses/0.json?skeleton=rig", "poses/1.json?skeleton=rig"]
+        track = client.get(config["rig_poses"][1]).json()
+        assert track["joints"][: rig.skeleton.n_joints] == rig.skeleton.names
+        pos = np.asarray(track["positions"]).reshape(track["frames"], len(track["joints"]), 3)
+        hips = pos[:, rig.joint("hips"), 1] / 1000.0  # metres, although the file is in cm
+        assert 0.6 < np.median(hips) < 1.2
+        library = client.get(config["poses"][1]).json()
+        assert library["joints"] != track["joints"]
+    # without rig files the page offers none
+    with TestClient(create_local_app(result / "out", result / "song.wav")) as client:
+        assert "rig_poses" not in page_config(client.get("/").text)

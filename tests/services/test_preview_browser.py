@@ -146,3 +146,48 @@ def test_preview_page_in_chromium(api, tmp_path_factory):
     assert {k: float(v) for k, v in rows.items() if k != "sum"} == pytest.approx(cost, abs=1e-4)
     assert timeline["alternatives"][1]["bars"][1]["node"] in seen["breakdown"]["text"]
     assert shot.is_file() and shot.stat().st_size > 10_000
+    assert seen["rig"] is None  # no rig files: no Skeleton switch
+
+
+def test_preview_page_switches_to_the_rig_in_chromium(tmp_path_factory, tmp_path):
+    """A ``synthesize --rig`` folder in ``dancegraph preview``: the page draws the rig's joints."""
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.retarget import RigOutput
+    from dancegraph.motion.rig import load_rig
+    from services.preview_server import create_local_app
+    from tests.motion.rigs import make_rigs
+
+    node = _require_browser()
+    root = synthesized(tmp_path_factory)
+    out = tmp_path / "out"
+    shutil.copytree(root / "out", out)
+    rig_path = make_rigs(tmp_path / "rigs", blender=False) / "cmu_cm.bvh"
+    rig = load_rig(rig_path)
+    hook = RigOutput(rig, rig_path, ["bvh"])
+    timeline = json.loads((out / "timeline.json").read_text())
+    for k in range(2):
+        timeline["alternatives"][k]["rig"] = hook(k, read_bvh(out / f"alternatives/{k}.bvh"), out)[
+            1
+        ]
+    (out / "timeline.json").write_text(json.dumps(timeline))
+    base, stop = _serve(create_local_app(out, root / "song.wav"))
+    try:
+        run = subprocess.run(
+            [node, "tests/browser.mjs", base + "/", str(tmp_path / "shot.png"), "1.0"],
+            cwd=FRONTEND,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "CHROMIUM": CHROMIUM},
+        )
+    finally:
+        stop()
+    assert run.returncode == 0, run.stderr[-3000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    assert seen["error"] is None and seen["console_errors"] == [] and seen["page_errors"] == []
+    library_joints = pose_track_file(out / "alternatives/0.bvh")["joints"]
+    rig_joints = pose_track_file(out / "alternatives/1.rig.bvh", 0.01)["joints"]
+    assert seen["rig"]["before"] == 3 * len(library_joints)
+    pose = np.asarray(seen["rig"]["after"]).reshape(-1, 3)
+    assert len(pose) == len(rig_joints) != len(library_joints)
+    assert 0.5 < pose[rig.joint("hips"), 1] < 1.3  # metres: the centimetre rig drawn to scale

@@ -85,6 +85,46 @@ def test_cancel_while_running_stops_the_worker_and_publishes_nothing(embedded, s
     assert not list((embedded.store_root / "tmp").glob(f"job-{job_id}-*"))
 
 
+def test_job_on_a_rig_in_embedded_mode(embedded, songs, tmp_path):  # noqa: F811
+    """A rig uploaded through the API, a job naming it: the dance on the rig beside the library's."""
+    import httpx
+
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.fbx import fbx_available
+    from dancegraph.motion.rig import load_rig
+    from tests.motion.rigs import make_rigs
+
+    rigs = make_rigs(tmp_path / "rigs", blender=False)
+    with open(rigs / "cmu_cm.bvh", "rb") as fh:
+        r = httpx.post(
+            f"{embedded.api_url}/v1/rigs",
+            headers=embedded.headers(),
+            files={"rig": ("cmu_cm.bvh", fh)},
+            timeout=60,
+        )
+    assert r.status_code == 201, r.text
+    rig_id = r.json()["id"]
+    formats = ["bvh", "fbx"] if fbx_available() else ["bvh"]
+    wav = write_test_song(songs, seed=5, seconds=12.0, name="on-rig")
+    spec = {"dataset": DATASET, "alternatives": 1, "output": {"formats": formats, "rig": rig_id}}
+    job_id = embedded.submit(wav, spec)["id"]
+    job = embedded.wait_final([job_id], timeout_s=600)[job_id]
+    assert job["status"] == "succeeded", job
+    rig = load_rig(rigs / "cmu_cm.bvh")
+    path = tmp_path / "0.rig.bvh"
+    path.write_bytes(embedded.download(job_id, "alternatives/0.rig.bvh"))
+    on_rig = read_bvh(path, scale=rig.unit_scale)
+    library = tmp_path / "0.bvh"
+    library.write_bytes(embedded.download(job_id, "alternatives/0.bvh"))
+    assert on_rig.skeleton.names == rig.skeleton.names
+    assert on_rig.n_frames == read_bvh(library).n_frames
+    assert embedded.download(job_id, "alternatives/0.rig.glb")[:4] == b"glTF"
+    if "fbx" in formats:
+        assert len(embedded.download(job_id, "alternatives/0.rig.fbx")) > 10_000
+    timeline = json.loads(embedded.download(job_id, "timeline.json"))
+    assert timeline["alternatives"][0]["rig"]["floor_error_m"]["max_abs"] <= 0.01
+
+
 def test_killed_serve_leaves_no_worker_behind(embedded):
     """Runs last in this module: SIGKILL only the ``serve`` process; its worker child gets a
     SIGTERM from the kernel (PR_SET_PDEATHSIG) and ends instead of polling its broker forever."""

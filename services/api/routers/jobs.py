@@ -247,20 +247,54 @@ def require_succeeded(job):
     return job
 
 
-_MEDIA = {"bvh": "text/plain; charset=utf-8", "fbx": "application/octet-stream"}
+_MEDIA = {
+    "bvh": "text/plain; charset=utf-8",
+    "fbx": "application/octet-stream",
+    "glb": "model/gltf-binary",
+}
+
+
+_DOWNLOAD_RESPONSES = {
+    200: {"content": {"application/octet-stream": {}, "text/plain": {}}},
+    **AUTH_ERRORS,
+    404: PROBLEM,
+    409: PROBLEM,
+    422: PROBLEM,
+}
+
+
+def _result_file(store: ObjectStore, job, rel: str, media: str, missing: str) -> FileResponse:
+    """The job's result file ``rel`` as a download; 404 ``result_not_found`` (``missing``)."""
+    path = store.path(jobs.result_key(job.id, rel))
+    if not path.is_file():
+        raise ApiError(404, "result_not_found", missing, field="k")
+    return FileResponse(path, media_type=media, filename=f"{job.id}-{rel.rsplit('/', 1)[-1]}")
+
+
+@router.get(
+    "/{job_id}/alternatives/{k}.rig.{fmt}",
+    summary="Download alternative k on the job's rig (spec output.rig) as BVH, FBX or GLB",
+    response_class=FileResponse,
+    responses=_DOWNLOAD_RESPONSES,
+)
+def download_alternative_on_rig(
+    job_id: str,
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    fmt: Literal["bvh", "fbx", "glb"] = Path(..., description="file format"),
+    tenant: Tenant = Depends(get_tenant),
+    db: Session = Depends(get_db),
+    store: ObjectStore = Depends(get_store),
+):
+    job = _finished_job(db, tenant, job_id)
+    missing = f"job {job_id} has no alternative {k} on a rig as {fmt} (spec output.rig)"
+    return _result_file(store, job, f"alternatives/{k}.rig.{fmt}", _MEDIA[fmt], missing)
 
 
 @router.get(
     "/{job_id}/alternatives/{k}.{fmt}",
     summary="Download alternative k as BVH or FBX",
     response_class=FileResponse,
-    responses={
-        200: {"content": {"application/octet-stream": {}, "text/plain": {}}},
-        **AUTH_ERRORS,
-        404: PROBLEM,
-        409: PROBLEM,
-        422: PROBLEM,
-    },
+    responses=_DOWNLOAD_RESPONSES,
 )
 def download_alternative(
     job_id: str,
@@ -271,12 +305,8 @@ def download_alternative(
     store: ObjectStore = Depends(get_store),
 ):
     job = _finished_job(db, tenant, job_id)
-    path = store.path(jobs.result_key(job.id, f"alternatives/{k}.{fmt}"))
-    if not path.is_file():
-        raise ApiError(
-            404, "result_not_found", f"job {job_id} has no alternative {k} as {fmt}", field="k"
-        )
-    return FileResponse(path, media_type=_MEDIA[fmt], filename=f"{job.id}-{k}.{fmt}")
+    missing = f"job {job_id} has no alternative {k} as {fmt}"
+    return _result_file(store, job, f"alternatives/{k}.{fmt}", _MEDIA[fmt], missing)
 
 
 @router.get(

@@ -10,9 +10,9 @@ gzip-encoded when the client accepts it.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse
 from sqlalchemy.orm import Session
 
@@ -33,6 +33,7 @@ from services.preview_server import (
     json_response,
     pose_json_gz,
     render_page,
+    rig_unit_scale,
 )
 
 router = APIRouter(prefix="/v1/jobs", tags=["preview"])
@@ -60,9 +61,14 @@ def pose_cache_prefix(job_id: str) -> str:
     return jobs.result_key(job_id, "preview")
 
 
-def _alternatives(store: ObjectStore, job: Job) -> int:
+def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool]:
+    """How many alternatives the job has (library ``<k>.bvh``), and whether they are on a rig."""
     folder = store.path(jobs.result_key(job.id, "alternatives"))
-    return len(list(folder.glob("*.bvh"))) if folder.is_dir() else 0
+    if not folder.is_dir():
+        return 0, False
+    names = [p.name for p in folder.glob("*.bvh")]
+    on_rig = [n for n in names if n.endswith(".rig.bvh")]
+    return len(names) - len(on_rig), bool(on_rig)
 
 
 @router.get(
@@ -76,7 +82,7 @@ def preview_page(
     settings: Settings = Depends(get_settings_dep),
     store: ObjectStore = Depends(get_store),
 ):
-    n_alternatives = _alternatives(store, job)
+    n_alternatives, on_rig = _alternatives(store, job)
     if not n_alternatives:
         raise ApiError(
             404, "result_not_found", f"job {job.id} has no dance to show", field="job_id"
@@ -89,6 +95,9 @@ def preview_page(
         timeline=f"{base}/timeline.json{q}",
         poses=[f"{base}/poses/{k}.json{q}" for k in range(n_alternatives)],
         assets=f"{settings.public_base_url}/preview-static",
+        rig_poses=[f"{base}/poses/{k}.json{q}&skeleton=rig" for k in range(n_alternatives)]
+        if on_rig
+        else None,
     )
 
 
@@ -127,9 +136,18 @@ def preview_timeline(
 def preview_poses(
     request: Request,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    skeleton: Literal["library", "rig"] = Query(
+        "library", description="the motion library's skeleton, or the job's rig (output.rig)"
+    ),
     job: Job = Depends(preview_job),
     store: ObjectStore = Depends(get_store),
 ):
-    bvh = store.path(jobs.result_key(job.id, f"alternatives/{k}.bvh"))
-    gz = pose_json_gz(bvh, k, store, pose_cache_prefix(job.id))
+    name = f"alternatives/{k}.rig.bvh" if skeleton == "rig" else f"alternatives/{k}.bvh"
+    bvh = store.path(jobs.result_key(job.id, name))
+    scale = (
+        rig_unit_scale(store.path(jobs.result_key(job.id, TIMELINE)), k)
+        if skeleton == "rig"
+        else 1.0
+    )
+    gz = pose_json_gz(bvh, k, store, pose_cache_prefix(job.id), scale=scale)
     return json_response(request, gz)

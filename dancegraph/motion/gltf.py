@@ -1,0 +1,365 @@
+"""glTF 2.0 in and out: a rig's joints and skinned mesh from GLB/glTF, a dance on a rig as GLB.
+
+Reading (:func:`read_gltf_rig`): the joints are every skin's joints (their bind pose is the
+inverse of the inverse-bind matrices), or every node that holds no mesh when the file has no
+skin (bind pose: the nodes' own transforms); the mesh is each skinned primitive's triangles with
+``JOINTS_0``/``WEIGHTS_0``. glTF is metres and Y up by definition. Sparse accessors and external
+buffers other than files beside a ``.gltf`` are refused (``rig_unreadable``).
+
+Writing (:func:`write_glb`): one node per rig joint (translation and rotation in the joint's own
+bind frame), one linear animation (every joint's rotation, the root's translation, one key per
+frame) and, when the rig has a mesh, that mesh skinned to the joints, so the character itself
+dances in any glTF viewer or DCC tool.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from dancegraph.motion import quat
+from dancegraph.motion.fk import fk_arrays
+
+_GLB_MAGIC = 0x46546C67
+_CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
+_COMPONENTS = {
+    5120: np.int8,
+    5121: np.uint8,
+    5122: np.int16,
+    5123: np.uint16,
+    5125: np.uint32,
+    5126: np.float32,
+}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+
+
+def _unreadable(path: Path, why: str):
+    from dancegraph.motion.rig import RigError
+
+    return RigError(f"{path.name}: {why}", code="rig_unreadable", field=path.name)
+
+
+def _load(path: Path) -> tuple[dict, list[bytes]]:
+    """The glTF JSON and its buffers' bytes, from a GLB or a ``.gltf`` (data URIs, files beside)."""
+    raw = path.read_bytes()
+    if raw[:4] == b"glTF":
+        if len(raw) < 20:
+            raise _unreadable(path, "truncated GLB header")
+        _magic, version, length = struct.unpack_from("<III", raw, 0)
+        if version != 2 or length > len(raw):
+            raise _unreadable(path, f"GLB version {version} or length {length} not readable")
+        offset, doc, bin_chunk = 12, None, b""
+        while offset + 8 <= length:
+            size, kind = struct.unpack_from("<II", raw, offset)
+            chunk = raw[offset + 8 : offset + 8 + size]
+            if kind == _CHUNK_JSON:
+                doc = json.loads(chunk.decode("utf-8"))
+            elif kind == _CHUNK_BIN:
+                bin_chunk = chunk
+            offset += 8 + size
+        if doc is None:
+            raise _unreadable(path, "no JSON chunk")
+    else:
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            raise _unreadable(path, "neither GLB nor glTF JSON") from None
+        bin_chunk = b""
+    buffers = []
+    for k, buf in enumerate(doc.get("buffers", [])):
+        uri = buf.get("uri")
+        if uri is None:
+            buffers.append(bin_chunk)
+        elif uri.startswith("data:"):
+            buffers.append(base64.b64decode(uri.split(",", 1)[1]))
+        else:
+            beside = (path.parent / uri).resolve()
+            if beside.parent != path.parent.resolve() or not beside.is_file():
+                raise _unreadable(path, f"buffer {k} refers to {uri!r}, which is not beside it")
+            buffers.append(beside.read_bytes())
+    return doc, buffers
+
+
+def _accessor(doc: dict, buffers: list[bytes], k: int, path: Path) -> np.ndarray:
+    acc = doc["accessors"][k]
+    if "sparse" in acc:
+        raise _unreadable(path, f"accessor {k} is sparse (not supported)")
+    dtype = np.dtype(_COMPONENTS[acc["componentType"]])
+    width = _WIDTH[acc["type"]]
+    count = int(acc["count"])
+    if "bufferView" not in acc:
+        return np.zeros((count, width), dtype=dtype)
+    view = doc["bufferViews"][acc["bufferView"]]
+    data = buffers[view["buffer"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    stride = view.get("byteStride") or dtype.itemsize * width
+    need = start + stride * (count - 1) + dtype.itemsize * width if count else start
+    if need > len(data):
+        raise _unreadable(path, f"accessor {k} runs past its buffer")
+    rows = np.lib.stride_tricks.as_strided(
+        np.frombuffer(data, dtype=np.uint8, count=len(data) - start, offset=start),
+        shape=(count, dtype.itemsize * width),
+        strides=(stride, 1),
+    )
+    out = np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+    if acc.get("normalized") and dtype.kind in "iu":
+        out = out.astype(float) / np.iinfo(dtype).max
+    return out
+
+
+def _local_matrix(node: dict) -> np.ndarray:
+    if "matrix" in node:
+        return np.asarray(node["matrix"], dtype=float).reshape(4, 4).T  # column-major
+    from scipy.spatial.transform import Rotation
+
+    m = np.eye(4)
+    r = Rotation.from_quat(node.get("rotation", [0, 0, 0, 1])).as_matrix()
+    m[:3, :3] = r * np.asarray(node.get("scale", [1, 1, 1]), dtype=float)[None, :]
+    m[:3, 3] = node.get("translation", [0, 0, 0])
+    return m
+
+
+def read_gltf_rig(path: str | Path):
+    """``(names, parents (J,), bind (J, 4, 4), RigMesh | None)`` of a GLB/glTF file (metres, Y up)."""
+    from dancegraph.motion.rig import RigMesh
+
+    path = Path(path)
+    try:
+        doc, buffers = _load(path)
+        nodes = doc.get("nodes", [])
+        parent_of = {}
+        for i, n in enumerate(nodes):
+            for c in n.get("children", []):
+                parent_of[c] = i
+        world: dict[int, np.ndarray] = {}
+
+        def world_of(i: int) -> np.ndarray:
+            if i not in world:
+                p = parent_of.get(i)
+                local = _local_matrix(nodes[i])
+                world[i] = local if p is None else world_of(p) @ local
+            return world[i]
+
+        skins = doc.get("skins", [])
+        bind: dict[int, np.ndarray] = {}
+        for skin in skins:
+            ibm = None
+            if "inverseBindMatrices" in skin:
+                ibm = _accessor(doc, buffers, skin["inverseBindMatrices"], path).astype(float)
+            for k, j in enumerate(skin["joints"]):
+                if j in bind:
+                    continue
+                if ibm is not None:
+                    bind[j] = np.linalg.inv(ibm[k].reshape(4, 4).T)
+                else:
+                    bind[j] = world_of(j)
+        if skins:
+            joint_nodes = sorted(bind)
+        else:
+            joint_nodes = [i for i, n in enumerate(nodes) if "mesh" not in n and "camera" not in n]
+            bind = {i: world_of(i) for i in joint_nodes}
+        index = {j: k for k, j in enumerate(joint_nodes)}
+        parents = []
+        for j in joint_nodes:
+            p = parent_of.get(j)
+            while p is not None and p not in index:
+                p = parent_of.get(p)
+            parents.append(-1 if p is None else index[p])
+        names = [nodes[j].get("name") or f"joint_{j}" for j in joint_nodes]
+        mats = np.stack([bind[j] for j in joint_nodes]) if joint_nodes else np.zeros((0, 4, 4))
+
+        pos_all, tri_all, jnt_all, wgt_all, base = [], [], [], [], 0
+        for node in nodes:
+            if "mesh" not in node or "skin" not in node:
+                continue
+            skin_joints = skins[node["skin"]]["joints"]
+            for prim in doc["meshes"][node["mesh"]].get("primitives", []):
+                attrs = prim.get("attributes", {})
+                if prim.get("mode", 4) != 4 or "JOINTS_0" not in attrs or "WEIGHTS_0" not in attrs:
+                    continue
+                pos = _accessor(doc, buffers, attrs["POSITION"], path).astype(float)
+                if "indices" in prim:
+                    idx = _accessor(doc, buffers, prim["indices"], path).astype(np.int64).ravel()
+                else:
+                    idx = np.arange(len(pos))
+                jts = _accessor(doc, buffers, attrs["JOINTS_0"], path).astype(np.int64)
+                wts = _accessor(doc, buffers, attrs["WEIGHTS_0"], path).astype(float)
+                lookup = np.array([index[j] for j in skin_joints])
+                pos_all.append(pos)
+                tri_all.append(idx.reshape(-1, 3) + base)
+                jnt_all.append(lookup[np.clip(jts, 0, len(lookup) - 1)])
+                wgt_all.append(wts / np.maximum(wts.sum(axis=1, keepdims=True), 1e-12))
+                base += len(pos)
+    except (KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError) as exc:
+        raise _unreadable(path, f"malformed glTF ({type(exc).__name__}: {exc})") from None
+    mesh = None
+    if pos_all:
+        mesh = RigMesh(
+            positions=np.concatenate(pos_all),
+            triangles=np.concatenate(tri_all),
+            joints=np.concatenate(jnt_all),
+            weights=np.concatenate(wgt_all),
+        )
+    return names, np.array(parents, dtype=np.int64), mats, mesh
+
+
+class _Builder:
+    """Accumulates one binary buffer, its views and accessors."""
+
+    def __init__(self) -> None:
+        self.blob = bytearray()
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def add(
+        self, array: np.ndarray, kind: str, target: int | None = None, minmax: bool = False
+    ) -> int:
+        array = np.ascontiguousarray(array)
+        comp = {np.dtype(v): k for k, v in _COMPONENTS.items()}[array.dtype]
+        while len(self.blob) % 4:
+            self.blob.append(0)
+        view = {"buffer": 0, "byteOffset": len(self.blob), "byteLength": array.nbytes}
+        if target is not None:
+            view["target"] = target
+        self.blob.extend(array.tobytes())
+        self.views.append(view)
+        acc = {
+            "bufferView": len(self.views) - 1,
+            "componentType": comp,
+            "count": int(array.shape[0]),
+            "type": {1: "SCALAR", 2: "VEC2", 3: "VEC3", 4: "VEC4", 16: "MAT4"}[
+                int(np.prod(array.shape[1:])) if array.ndim > 1 else 1
+            ],
+        }
+        if minmax:
+            flat = array.reshape(array.shape[0], -1)
+            acc["min"] = flat.min(axis=0).tolist()
+            acc["max"] = flat.max(axis=0).tolist()
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+
+def _vertex_normals(pos: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    n = np.zeros_like(pos)
+    face = np.cross(pos[tris[:, 1]] - pos[tris[:, 0]], pos[tris[:, 2]] - pos[tris[:, 0]])
+    for k in range(3):
+        np.add.at(n, tris[:, k], face)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(length > 1e-12, n / np.maximum(length, 1e-12), [0.0, 1.0, 0.0])
+    return n
+
+
+def write_glb(motion, rig, path: str | Path) -> dict:
+    """Write ``motion`` (on ``rig.skeleton``, BVH convention, metres) as a GLB on the rig.
+
+    Returns ``{frames, joints, vertices, bytes}``. Written atomically (temporary file, rename).
+    """
+    sk = rig.skeleton
+    n_joints = sk.n_joints
+    rest = quat.normalize(np.asarray(rig.rest_rotations, dtype=float))
+    _, g = fk_arrays(sk, motion.root_positions, motion.rotations)  # world deltas from bind
+    world = quat.multiply(g, rest[None])  # each joint's own frame, per frame
+    local = world.copy()
+    parents = sk.parents
+    nonroot = parents >= 0
+    local[:, nonroot] = quat.multiply(quat.conjugate(world[:, parents[nonroot]]), world[:, nonroot])
+    local = _continuous(quat.normalize(local))
+    translation = np.zeros((n_joints, 3))
+    translation[nonroot] = quat.rotate(quat.conjugate(rest[parents[nonroot]]), sk.offsets[nonroot])
+    root_rest = np.zeros(3)
+    root_rest[:] = sk.offsets[0]
+    b = _Builder()
+    nodes = []
+    for j in range(n_joints):
+        node = {
+            "name": sk.names[j],
+            "translation": (translation[j] if j else root_rest).tolist(),
+            "rotation": local[0, j].tolist(),
+        }
+        kids = sk.children(j)
+        if kids:
+            node["children"] = kids
+        nodes.append(node)
+    times = (np.arange(motion.n_frames) / motion.fps).astype(np.float32)
+    t_acc = b.add(times[:, None], "SCALAR", minmax=True)
+    samplers, channels = [], []
+    for j in range(n_joints):
+        out = b.add(local[:, j].astype(np.float32), "VEC4")
+        samplers.append({"input": t_acc, "output": out, "interpolation": "LINEAR"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": j, "path": "rotation"}})
+    out = b.add(motion.root_positions.astype(np.float32), "VEC3")
+    samplers.append({"input": t_acc, "output": out, "interpolation": "LINEAR"})
+    channels.append({"sampler": len(samplers) - 1, "target": {"node": 0, "path": "translation"}})
+    doc: dict = {
+        "asset": {"version": "2.0", "generator": "DanceGraph"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": nodes,
+        "animations": [{"name": "dance", "samplers": samplers, "channels": channels}],
+    }
+    n_vertices = 0
+    if rig.mesh is not None and rig.mesh.n_vertices:
+        mesh = rig.mesh
+        n_vertices = mesh.n_vertices
+        bind = np.tile(np.eye(4), (n_joints, 1, 1))
+        from scipy.spatial.transform import Rotation
+
+        bind[:, :3, :3] = Rotation.from_quat(rest).as_matrix()
+        pos = np.zeros((n_joints, 3))
+        for j in range(n_joints):
+            pos[j] = sk.offsets[j] if parents[j] < 0 else pos[parents[j]] + sk.offsets[j]
+        bind[:, :3, 3] = pos
+        ibm = np.linalg.inv(bind).transpose(0, 2, 1).reshape(n_joints, 16)  # column-major
+        attrs = {
+            "POSITION": b.add(mesh.positions.astype(np.float32), "VEC3", 34962, minmax=True),
+            "NORMAL": b.add(
+                _vertex_normals(mesh.positions, mesh.triangles).astype(np.float32), "VEC3", 34962
+            ),
+            "JOINTS_0": b.add(mesh.joints.astype(np.uint16), "VEC4", 34962),
+            "WEIGHTS_0": b.add(mesh.weights.astype(np.float32), "VEC4", 34962),
+        }
+        indices = b.add(mesh.triangles.astype(np.uint32).reshape(-1, 1), "SCALAR", 34963)
+        doc["meshes"] = [
+            {"name": "body", "primitives": [{"attributes": attrs, "indices": indices}]}
+        ]
+        doc["skins"] = [
+            {
+                "joints": list(range(n_joints)),
+                "skeleton": 0,
+                "inverseBindMatrices": b.add(ibm.astype(np.float32), "MAT4"),
+            }
+        ]
+        nodes.append({"name": "body", "mesh": 0, "skin": 0})
+        doc["scenes"][0]["nodes"].append(len(nodes) - 1)
+    while len(b.blob) % 4:
+        b.blob.append(0)
+    doc["buffers"] = [{"byteLength": len(b.blob)}]
+    doc["bufferViews"] = b.views
+    doc["accessors"] = b.accessors
+    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    total = 12 + 8 + len(text) + 8 + len(b.blob)
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(struct.pack("<III", _GLB_MAGIC, 2, total))
+        fh.write(struct.pack("<II", len(text), _CHUNK_JSON))
+        fh.write(text)
+        fh.write(struct.pack("<II", len(b.blob), _CHUNK_BIN))
+        fh.write(bytes(b.blob))
+    tmp.replace(path)
+    return {"frames": motion.n_frames, "joints": n_joints, "vertices": n_vertices, "bytes": total}
+
+
+def _continuous(q: np.ndarray) -> np.ndarray:
+    """``(F, J, 4)`` with each frame's sign chosen nearest to the previous frame (no flips)."""
+    out = q.copy()
+    dots = np.sum(out[1:] * out[:-1], axis=-1)
+    flips = np.cumsum(dots < 0, axis=0) % 2  # flips accumulate along time
+    out[1:][flips.astype(bool)] *= -1.0
+    return out

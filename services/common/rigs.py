@@ -1,0 +1,158 @@
+"""Tenants' character rigs: checked at upload, stored, found again for a job.
+
+A rig is validated when it arrives (``dancegraph.motion.rig.load_rig``: the file is read, its
+humanoid roles found), so a bad rig is a 4xx at ``POST /v1/rigs`` with the library's code and
+never a failed job later. The file is kept in the object store under
+``rigs/<tenant>/<rig id>/rig.<fmt>``; the row keeps the user's mapping and the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from dancegraph.motion.rig import RIG_SUFFIXES, Rig, RigError, check_mapping, load_rig
+from dancegraph.store import ObjectStore, file_sha256
+from services.common.problems import ApiError
+from services.common.uploads import FilePart
+from services.models import Rig as RigRow
+from services.models import new_id
+
+MAX_MAPPING_BYTES = 64 * 1024
+
+
+def rig_key(tenant_id: str, rig_id: str, fmt: str) -> str:
+    return f"rigs/{tenant_id}/{rig_id}/rig.{fmt}"
+
+
+def parse_mapping(raw: str | bytes | None) -> dict[str, str]:
+    """The optional ``mapping`` form part (JSON object: role → joint name); 422 when malformed."""
+    if raw is None or not str(raw).strip():
+        return {}
+    if len(raw) > MAX_MAPPING_BYTES:
+        raise ApiError(413, "rig_map_too_large", "the mapping is too large", field="mapping")
+    try:
+        data = json.loads(raw)
+    except ValueError as exc:
+        raise ApiError(
+            422, "rig_map_invalid", f"mapping is not JSON: {exc}", field="mapping"
+        ) from None
+    return check_mapping(data)
+
+
+def register_rig(
+    session: Session, store: ObjectStore, tenant_id: str, part: FilePart, mapping: dict[str, str]
+) -> RigRow:
+    """Check an uploaded rig file (its name's suffix says the format) and store it; the new row.
+
+    Raises ``ApiError`` 415 ``rig_format`` for a suffix other than .fbx/.glb/.gltf/.bvh, and the
+    library's ``RigError`` (422: ``rig_unreadable``, ``rig_no_armature``, ``rig_missing_roles``
+    naming the roles, ``rig_disconnected``, ``rig_zero_length``, ``rig_map_invalid``, ...).
+    """
+    suffix = Path(part.filename or "").suffix.lower()
+    if suffix not in RIG_SUFFIXES:
+        raise ApiError(
+            415,
+            "rig_format",
+            f"a rig file must end in one of {', '.join(RIG_SUFFIXES)} (got {part.filename!r})",
+            field="rig",
+        )
+    fmt = "glb" if suffix == ".gltf" else suffix.lstrip(".")
+    if suffix == ".gltf":
+        suffix = ".glb" if part.path.read_bytes()[:4] == b"glTF" else ".gltf"
+    with tempfile.TemporaryDirectory(prefix="dg-rig-", dir=store.root / "tmp") as tmp:
+        named = Path(tmp) / f"rig{suffix}"
+        shutil.copyfile(part.path, named)
+        rig = load_rig(named, mapping=mapping or None)  # RigError → 422 with its code
+        rig_id = new_id()
+        key = rig_key(tenant_id, rig_id, suffix.lstrip("."))
+        store.put_file(key, named)
+        row = RigRow(
+            id=rig_id,
+            tenant_id=tenant_id,
+            filename=(part.filename or f"rig{suffix}")[:255],
+            format=fmt,
+            file_key=key,
+            sha256=file_sha256(named),
+            size_bytes=named.stat().st_size,
+            mapping=dict(mapping),
+            summary=rig.summary(),
+        )
+    session.add(row)
+    session.flush()
+    return row
+
+
+def find_rig(session: Session, tenant_id: str, rig_id: str) -> RigRow | None:
+    """The tenant's rig ``rig_id``, or None (another tenant's rig is not found either)."""
+    return session.scalar(select(RigRow).where(RigRow.id == rig_id, RigRow.tenant_id == tenant_id))
+
+
+def list_rigs(session: Session, tenant_id: str) -> list[RigRow]:
+    return list(
+        session.scalars(
+            select(RigRow).where(RigRow.tenant_id == tenant_id).order_by(RigRow.created_at)
+        )
+    )
+
+
+def delete_rig(session: Session, store: ObjectStore, row: RigRow) -> None:
+    store.delete_prefix(f"rigs/{row.tenant_id}/{row.id}")
+    session.delete(row)
+
+
+def load_stored_rig(store: ObjectStore, row: RigRow) -> tuple[Rig, Path]:
+    """The stored rig, loaded with its mapping, and its file's path (FBX output poses that file)."""
+    path = store.path(row.file_key)
+    if not path.is_file():
+        raise RigError(f"rig {row.id} has no file any more", code="unknown_rig", field="rig")
+    return load_rig(path, mapping=dict(row.mapping) or None), path
+
+
+def _job_rig(
+    store: ObjectStore, database_url: str, tenant_id: str, rig_id: str
+) -> tuple[Rig, Path]:
+    """A job's rig, loaded; ``RigError`` ``unknown_rig`` when it was deleted after submission."""
+    from services.db import session_scope
+
+    with session_scope(database_url) as session:
+        row = find_rig(session, tenant_id, rig_id)
+        if row is None:
+            raise RigError(
+                f"the rig {rig_id} was deleted", code="unknown_rig", field="spec.output.rig"
+            )
+        return load_stored_rig(store, row)
+
+
+def job_rig_output(store: ObjectStore, database_url: str, tenant_id: str, rig_id: str | None):
+    """The render hook that writes a job's alternatives on its rig (BVH and GLB), or None.
+
+    FBX on the rig is the ``fbx`` queue's work (:func:`write_rig_fbx`). Raises ``RigError``
+    ``unknown_rig`` when the rig was deleted after the job was submitted.
+    """
+    if rig_id is None:
+        return None
+    from dancegraph.motion.retarget import RigOutput
+
+    rig, path = _job_rig(store, database_url, tenant_id, rig_id)
+    return RigOutput(rig, path, ("bvh", "glb"))
+
+
+def write_rig_fbx(
+    store: ObjectStore, database_url: str, tenant_id: str, rig_id: str, bvh: Path, fbx: Path
+) -> dict:
+    """``alternatives/<k>.rig.fbx`` from ``<k>.rig.bvh``: the rig's own file posed in Blender."""
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.retarget import write_on_rig
+    from dancegraph.motion.skeleton import Motion
+
+    rig, path = _job_rig(store, database_url, tenant_id, rig_id)
+
+    motion = read_bvh(bvh, scale=rig.unit_scale)
+    on_rig = Motion(rig.skeleton, motion.fps, motion.root_positions, motion.rotations)
+    return write_on_rig(on_rig, rig, path, fbx)
