@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dancegraph.rhythm.signatures import N_SLOTS, scores_from_slot_evidence, top_k
+from dancegraph.rhythm.signatures import COMMON_BITS, N_SLOTS, scores_from_slot_evidence, top_k
 
 #: Half-width of the window searched for an onset around a slot: this many seconds, at most a
 #: quarter of a half beat (so neighbouring slots never share an onset).
@@ -40,6 +40,17 @@ def slot_times(bar_beats: np.ndarray, swing: float = 0.0) -> np.ndarray:
     lo = np.floor(pos).astype(int)
     frac = pos - lo
     return bar_beats[:, lo] * (1 - frac) + bar_beats[:, lo + 1] * frac
+
+
+def rhythm_points(bar_beats: np.ndarray, signatures: np.ndarray) -> np.ndarray:
+    """``(P,)`` seconds, sorted: the music's rhythm points, the active slots of each bar's rhythm
+    signature (ChoreoMaster's beat-accuracy denominator). ``bar_beats (B, 5)`` s;
+    ``signatures (B,)`` indices into ``COMMON_SIGNATURES`` (e.g. ``signature_topk[:, 0]``)."""
+    bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    bits = COMMON_BITS[np.asarray(signatures, dtype=int).reshape(-1)]
+    if len(bits) != len(bar_beats):
+        raise ValueError(f"{len(bits)} signatures for {len(bar_beats)} bars")
+    return np.sort(slot_times(bar_beats)[bits.astype(bool)])
 
 
 def _slot_peaks(
