@@ -53,7 +53,7 @@ from dancegraph.graph import _dp, choreography
 from dancegraph.graph.artifact import MotionGraph
 from dancegraph.motion import quat
 from dancegraph.motion.skeleton import Motion
-from dancegraph.rhythm.signatures import COMMON_DISTANCES
+from dancegraph.rhythm.signatures import PATTERN_DISTANCES
 from dancegraph.spec import Spec
 
 KBEST_NODES = 4096  # graphs up to this size keep k-best histories under structure ties
@@ -302,9 +302,9 @@ def music_inputs(music: dict, graph: MotionGraph | None, analysis=None) -> tuple
 def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: Spec) -> np.ndarray:
     """C_d for every bar and node ``(T, N) float32``: λ10·(λ12‖z_M − z_D‖ + λ13 min_k G_r).
 
-    ``zm (T, 32)`` music style; ``sig_cost (T, 13)`` min over the bar's top-K signatures of the
-    distance to each common signature. One matrix product, then one fused pass (the hot path of
-    a query).
+    ``zm (T, 32)`` music style; ``sig_cost (T, 256)`` (``rhythm_costs``) per slot pattern the
+    rhythm distance G_r of a node whose signature is that pattern. One matrix product, then one
+    fused pass (the hot path of a query).
     """
     w = spec.weights
     zm = zm.astype(np.float32)
@@ -314,10 +314,17 @@ def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: S
         (zm * zm).sum(1),
         _style_sq(graph),
         (w.rhythm * sig_cost).astype(np.float32),
-        _ro(graph.signature, np.int8),
+        _ro(graph.signature, np.uint8),
         float(w.style),
         float(w.data),
     )
+
+
+def rhythm_costs(topk: np.ndarray) -> np.ndarray:
+    """``(T, 256)``: the rhythm term's G_r for each music bar and each slot pattern a node's
+    kinematic beats can make, the distance to the nearest of the bar's top-K signatures
+    ``topk (T, K)`` (indices into ``COMMON_SIGNATURES``), ChoreoMaster's min_k G_r(R_M^k, R_D)."""
+    return PATTERN_DISTANCES[np.asarray(topk, dtype=int)].min(axis=1)
 
 
 def _cached(graph: MotionGraph, key, make):
@@ -411,7 +418,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
     zm, music = music_inputs(music, graph, analysis)
-    sig_cost = COMMON_DISTANCES[music["topk"]].min(axis=1)  # (T, 13)
+    sig_cost = rhythm_costs(music["topk"])
     data = data_costs(graph, zm, sig_cost, spec)
     # restrictions: a mask for all bars, and masks of single bars (None: everything allowed)
     every_ok: np.ndarray | None = None
@@ -799,7 +806,7 @@ def warm_up() -> None:
         "node_source": z((n, 2), np.int32),
         "mirror_of": np.array([1, 0], np.int32),
         "style": z((n, 32), np.float32),
-        "signature": z(n, np.int8),
+        "signature": z(n, np.uint8),
         "motif": z(n, np.int32),
         "entry": z((n, d), np.float32),
         "exit": z((n, d), np.float32),

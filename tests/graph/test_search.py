@@ -426,8 +426,13 @@ def tiled_graph(demo_graph):
 
 
 def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
-    from dancegraph.graph.search import _music_arrays, data_costs, edges_below, music_style
-    from dancegraph.rhythm.signatures import COMMON_DISTANCES
+    from dancegraph.graph.search import (
+        _music_arrays,
+        data_costs,
+        edges_below,
+        music_style,
+        rhythm_costs,
+    )
 
     g = tiled_graph
     song = synthetic_analysis("ABCDE", bars_per_phrase=4)
@@ -436,7 +441,7 @@ def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
 
     # plain Viterbi over every node and edge, in float64
     music = _music_arrays(song)
-    data = data_costs(g, music_style(music, g), COMMON_DISTANCES[music["topk"]].min(axis=1), spec)
+    data = data_costs(g, music_style(music, g), rhythm_costs(music["topk"]), spec)
     indptr, indices, costs = edges_below(g, spec.transition_threshold)
     src = np.repeat(np.arange(g.n_nodes), np.diff(indptr))
     best = data[0].astype(np.float64)
@@ -464,3 +469,25 @@ def test_threads_do_not_change_the_result(tiled_graph):
     for a, b in zip(one.alternatives, many.alternatives, strict=True):
         assert np.array_equal(a.nodes, b.nodes)
         assert a.cost == b.cost
+
+
+def test_rhythm_term_picks_nodes_whose_beats_fall_on_the_music_s_accents(demo_graph):
+    from dancegraph.rhythm.signatures import COMMON_SIGNATURES, PATTERN_DISTANCES
+
+    # every bar's music signature is known (top-3 all the same); no other term counts
+    song = synthetic_analysis("ABCD", bars_per_phrase=4)
+    want = [COMMON_SIGNATURES.index(s) for s in ("00010001", "01010101", "00000101", "01110111")]
+    topk = np.repeat(np.array(want * 4)[:, None], 3, axis=1)
+    song = dataclasses.replace(song, signature_topk=topk)
+    rules = {"structure": {"repeat": False, "mirror": False}, "alternatives": 1}
+    weights = {"style": 0.0, "transition": 0.0}
+    pattern = np.asarray(demo_graph.signature)
+
+    def misfit(rhythm: float) -> float:
+        spec = _spec(weights={**weights, "rhythm": rhythm}, **rules)
+        nodes = search(demo_graph, song, spec).alternatives[0].index
+        return float(PATTERN_DISTANCES[topk[:, 0], pattern[nodes]].sum())
+
+    # with the term, most bars are danced by a node with exactly the music's accents (where an
+    # edge leads to one); without it, the accents fall anywhere
+    assert misfit(1.5) <= 0.25 * misfit(0.0)
