@@ -12,7 +12,8 @@ from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import _dp
 from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
-from dancegraph.graph.search import placed_motion, root_trajectory, search, structure_pairs
+from dancegraph.graph.problem import structure_pairs
+from dancegraph.graph.search import placed_motion, root_trajectory, search
 from dancegraph.render import render_path
 from dancegraph.spec import Spec
 
@@ -426,7 +427,7 @@ def tiled_graph(demo_graph):
 
 
 def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
-    from dancegraph.graph.search import (
+    from dancegraph.graph.problem import (
         _music_arrays,
         data_costs,
         edges_below,
@@ -491,3 +492,40 @@ def test_rhythm_term_picks_nodes_whose_beats_fall_on_the_music_s_accents(demo_gr
     # with the term, most bars are danced by a node with exactly the music's accents (where an
     # edge leads to one); without it, the accents fall anywhere
     assert misfit(1.5) <= 0.25 * misfit(0.0)
+
+
+def test_compiling_a_spec_gives_the_dp_s_inputs_without_running_it(demo_graph, song):
+    from dancegraph.graph.problem import DENSE_LIMIT, WAYPOINT_WEIGHT, compile_spec
+
+    g = demo_graph
+    pin = g.node_ids[7]
+    spec = _spec(
+        include=[{"node": pin, "bars": [2, 2]}],
+        exclude=[{"node": "pop_90:*", "bars": [8, 11]}],
+        waypoints=[{"second": 5.0, "position": [0.2, 0.0], "tolerance": 0.5}],
+    )
+    p = compile_spec(g, song, spec)
+    n_bars = song.n_bars
+    assert p.data.shape == (n_bars, g.n_nodes) and p.sig_cost.shape == (n_bars, 256)
+    # AABA: the A occurrences repeat bar for bar; bars 0 and 2 of an occurrence
+    # share a meter id, so bar 2 mirrors bar 0 (the pin at bar 2 pins bar 0 to its mirror)
+    for a, b, par, rule in p.pairs:
+        assert p.var[a] == p.var[b] and (p.parity[a] ^ p.parity[b]) == par, rule
+    assert p.n_vars < n_bars and p.slots > 1  # ties: k-best histories
+    v = p.var[2]
+    want = g.node_index(pin) if p.parity[2] == 0 else g.mirror_of[g.node_index(pin)]
+    assert np.isfinite(p.unary[v]).sum() == 1 and np.isfinite(p.unary[v, want])
+    assert p.dense[v] and np.isfinite(p.unary[v]).sum() <= DENSE_LIMIT
+    # the exclude holds at the variables of bars 8-11 (phrase B, tied to no bar outside it)
+    pop = np.array([n.startswith("pop_90:") for n in g.node_ids])
+    for t in range(8, 12):
+        assert np.isinf(p.unary[p.var[t], pop]).all()
+    assert np.isfinite(p.unary[p.var[1], pop]).any()  # an A bar: not in its range
+    # the waypoint's bar and path sample, and the chain covers every variable once
+    bar_s = song.bars[0][1] - song.bars[0][0]
+    assert p.track.on and p.track.wp_bar.tolist() == [int(5.0 // bar_s)]
+    assert p.track.wp_w == WAYPOINT_WEIGHT
+    assert sorted(p.chain.var.tolist()) == list(range(p.n_vars))
+    assert (p.chain.var[p.step] == p.var).all()
+    assert p.report["pins"] == [{"field": "include[0]", "node": pin, "bar": 2}]
+    assert p.report["excluded_bars"] == 4 and p.report["variables"] == p.n_vars
