@@ -624,11 +624,11 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
     if audio is not None:
         from dancegraph.music.decode import load_audio
         from dancegraph.music.features import FEATURE_SR, frame_features
-        from dancegraph.rhythm.music import music_signatures
+        from dancegraph.rhythm.music import song_signatures
 
         y, sr = load_audio(audio, sr=FEATURE_SR)
         ff = frame_features(y, sr)
-        _, topk, _ = music_signatures(ff.onset, ff.frame_rate, bar_beats)
+        _, topk, _ = song_signatures(ff, bar_beats)
         grid = sync_grid(bar_beats, topk[:, 0], mbeats.librosa_beats(y, sr))
         source = "librosa_percussive"
     else:

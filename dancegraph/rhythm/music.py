@@ -110,6 +110,14 @@ def slot_evidence(
     return np.clip(ev / scale, 0.0, 1.0)
 
 
+def song_signatures(
+    ff, bar_beats: np.ndarray, k: int = 3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``music_signatures`` of a song's frame features ``ff`` (``music.features.FrameFeatures``)
+    on its bars ``bar_beats (B, 5)`` s: from the accent curve (bands below 4 kHz, no hats)."""
+    return music_signatures(ff.accent, ff.frame_rate, bar_beats, k)
+
+
 def music_signatures(
     onset: np.ndarray, frame_rate: float, bar_beats: np.ndarray, k: int = 3
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

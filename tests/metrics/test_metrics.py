@@ -303,3 +303,29 @@ def test_diversity():
     assert diversity.feature_diversity(np.zeros((1, 3))) is None
     assert diversity.path_diversity([np.array([1, 2, 3, 4]), np.array([1, 2, 5, 6])]) == 0.5
     assert diversity.path_diversity([np.array([1, 2])]) is None
+
+
+def test_sync_table_puts_every_metric_beside_its_chance_rows():
+    from dancegraph.eval.harness import Dance, sync_metrics, sync_table
+
+    smpl, fps, bars, keys = _demo_dance(0)
+    beat_grid = np.unique(bars.ravel())
+    grid = beats.SyncGrid(beat_grid, beat_grid, keys, (float(bars[0, 0]), float(bars[-1, 4])))
+    other = np.arange(0.0, grid.span[1], 60.0 / 137.0)
+    far = beats.SyncGrid(other, other, other, (0.0, grid.span[1]))
+    dance = beats.DanceBeats.of(smpl, fps, kinematic_beats(smpl, fps))
+    m = sync_metrics(dance, grid.span, grid, far)
+    assert m["phase_r_half"] is None and m["cm_accuracy_other"] is not None
+    lone = sync_metrics(dance, grid.span, grid, None)
+    assert lone["bas_bailando_other"] is None and lone["bas_bailando"] == m["bas_bailando"]
+    blank = np.zeros((0, 72))
+    per_song = [
+        {"ours": [Dance(m, blank, blank[0:0], None, {}), Dance(lone, blank, blank, None, {})]}
+    ]
+    cell = sync_table(per_song, ["ours"])["ours"]["bas_bailando"]
+    assert cell["value"] == pytest.approx(m["bas_bailando"])
+    assert cell["gain_half_beat"] == pytest.approx(m["bas_bailando"] - m["bas_bailando_half"])
+    # the other-song row only from the dance that has one
+    assert cell["other_song"] == pytest.approx(m["bas_bailando_other"])
+    assert cell["ratio_other_song"] == pytest.approx(m["bas_bailando"] / m["bas_bailando_other"])
+    assert sync_table(per_song, ["ours"])["ours"]["phase_r"]["half_beat"] is None
