@@ -149,7 +149,9 @@ class Song:
         return self.grid.beats
 
 
-def sync_grid(bar_beats: np.ndarray, signatures: np.ndarray, percussive: np.ndarray):
+def sync_grid(
+    bar_beats: np.ndarray, signatures: np.ndarray, percussive: np.ndarray
+) -> mbeats.SyncGrid:
     """The ``SyncGrid`` of a song's 4-beat bars ``bar_beats (B, 5)`` s, their rhythm signatures
     ``(B,)`` (indices into ``COMMON_SIGNATURES``) and librosa's percussive beats ``(M,)`` s:
     the bars' beats, the active slots of their signatures, and the bars' span."""
