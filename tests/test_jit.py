@@ -53,12 +53,12 @@ def test_no_kernel_path_skips_the_lock():
     calls = {
         "decoder": "from dancegraph.music import barpointer\nimport numba, numpy as np\n"
         "print('ready', flush=True)\nbarpointer.warm_up()\n",
-        "search": "from dancegraph.graph import search\nimport numpy as np\n"
+        "search": "from dancegraph.graph import problem\nimport numpy as np\n"
         "from dancegraph.spec import Spec\n"
         "g = type('G', (), {'style': np.zeros((2, 32), np.float32), "
-        "'signature': np.zeros(2, np.int8)})()\n"
+        "'signature': np.zeros(2, np.uint8)})()\n"
         "print('ready', flush=True)\n"
-        "search.data_costs(g, np.zeros((1, 32)), np.zeros((1, 13)), Spec())\n",
+        "problem.data_costs(g, np.zeros((1, 32)), np.zeros((1, 256)), Spec())\n",
     }
     for name, code in calls.items():
         with jit.compile_lock():

@@ -3,12 +3,13 @@
 Build (``dancegraph dataset build NAME --embedding PATH [--rhythm-model PATH]``): each original
 bar's style is E_D of the 8-s ``phrase_positions`` window from its downbeat, and (with a rhythm
 model) its signature is the top-1 of E_DR + E_RS on its ``bar_rhythm_features``; augmented nodes
-take the values of the bar they came from (``node_source[:, 0]``). The model files are copied
+take the values of the bar they came from (``node_source[:, 0]``; a shuffle's signature has its
+second bar's beats 3–4). The model files are copied
 content-addressed into the object store (``models/<kind>-<hash12>.dgm``) and the manifest's
 ``embedding`` entry names them: ``version`` (the style model's, or ``descriptor-v1``),
 ``style_model`` / ``rhythm_model`` (kind, version, sha256, store key, classes, training).
 
-Search (``graph.search.music_inputs``): where the song's audio is at hand (``render.synthesize``,
+Search (``graph.problem.music_inputs``): where the song's audio is at hand (``render.synthesize``,
 the worker's job pipeline, ``dancegraph eval``), ``add_music_terms`` puts the graph's learned music inputs into the
 ``MusicAnalysis``, keyed by each model's content hash: ``learned_style`` = E_M of the 8-s log-mel
 window from each bar's start (the same window E_D sees for a dance bar), ``learned_topk`` = the

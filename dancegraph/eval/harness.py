@@ -16,8 +16,11 @@ For every song the harness dances the rows below and scores each dance with ``da
 
 Each row dances ``spec.alternatives`` dances per song (takes, seeds or search alternatives).
 ``metrics.json`` holds every dance's numbers, per-song means and the per-row aggregate (means
-over songs and alternatives, FID_k against the library, diversity); ``report.html`` is
-self-contained (inline PNG plots) with the table and, per song, the plots of our dance.
+over songs and alternatives, FID_k against the library, diversity), and ``sync``: per row every
+sync metric (``metrics.beats``) beside its chance rows — the same dances against the song's
+beats shifted by half a beat, and against the next song's beats — with the gain over each;
+``report.html`` is self-contained (inline PNG plots) with the tables and, per song, the plots
+of our dance.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,6 +44,7 @@ from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import resample
 from dancegraph.motion.skeleton import Motion
 from dancegraph.render import to_json_types
+from dancegraph.rhythm.signatures import COMMON_SIGNATURES
 from dancegraph.spec import Spec
 
 if TYPE_CHECKING:
@@ -62,9 +66,11 @@ FID_WINDOW_S = 5.0  # FID_k samples: non-overlapping windows of this length
 CONCAT_RUN_BARS = 8  # bars per clip in the clip-concatenation baseline
 #: Scalar metrics of one dance, in table order, with their column titles.
 SCALARS: dict[str, str] = {
-    "beat_accuracy": "Beat acc.",
+    "cm_accuracy": "CM beat acc.",
+    "beat_accuracy": "Beat acc. (all beats)",
     "bas_bailando": "BAS (Bailando)",
     "bas_fact": "BAS (FACT)",
+    "phase_r": "Phase R",
     "seam_flagged_share": "Seams > p99",
     "seam_median_percentile": "Seam pct. (median)",
     "skate_speed_m_s": "Skate m/s",
@@ -137,12 +143,34 @@ def load_library(graph: MotionGraph, dataset=None) -> Library:
 
 @dataclass
 class Song:
-    """A song to dance: its analysis, its tracker beats and librosa's percussive beats (s)."""
+    """A song to dance: its analysis and the music side of the sync metrics (``grid``)."""
 
     name: str
     analysis: MusicAnalysis
-    beats: np.ndarray
-    librosa_beats: np.ndarray
+    grid: mbeats.SyncGrid
+
+    @property
+    def beats(self) -> np.ndarray:
+        """The tracker's beats (s)."""
+        return self.grid.beats
+
+
+def sync_grid(
+    bar_beats: np.ndarray, signatures: np.ndarray, percussive: np.ndarray
+) -> mbeats.SyncGrid:
+    """The ``SyncGrid`` of a song's 4-beat bars ``bar_beats (B, 5)`` s, their rhythm signatures
+    ``(B,)`` (indices into ``COMMON_SIGNATURES``) and librosa's percussive beats ``(M,)`` s:
+    the bars' beats, the active slots of their signatures, and the bars' span."""
+    from dancegraph.rhythm.music import rhythm_points
+
+    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    beats = np.unique(bb.ravel()) if len(bb) else np.zeros(0)
+    return mbeats.SyncGrid(
+        beats=beats,
+        percussive_beats=np.asarray(percussive, dtype=float),
+        rhythm_points=rhythm_points(bb, signatures),
+        span=(float(bb[0, 0]), float(bb[-1, 4])) if len(bb) else (0.0, 0.0),
+    )
 
 
 @dataclass
@@ -162,8 +190,8 @@ def score_dance(
     spec: Spec,
     *,
     span: tuple[float, float],
-    tracker_beats: np.ndarray,
-    music_beats: np.ndarray,
+    grid: mbeats.SyncGrid,
+    other: mbeats.SyncGrid | None = None,
     bars: np.ndarray | None = None,
     nodes: np.ndarray | None = None,
     tags: list[dict] | None = None,
@@ -171,28 +199,19 @@ def score_dance(
 ) -> Dance:
     """Every metric of one dance ``motion`` (60 fps, frame 0 = t 0 of the song).
 
-    ``span`` (s): where the dance moves (beats outside it are not counted); ``tracker_beats``
-    (our beat tracker's, for beat accuracy) and ``music_beats`` (librosa percussive, for the
-    Beat Align Scores) in seconds. ``bars (T, 2)``, ``nodes (T,)`` and ``tags``: the path on
-    the music bars, when there is one (structure, controls); ``seams``: frames where bars meet.
+    ``span`` (s): where the dance moves (beats outside it are not counted); ``grid``: the music
+    the dance is scored against, ``other``: another song's (a chance row; none: not measured).
+    ``bars (T, 2)``, ``nodes (T,)`` and ``tags``: the path on the music bars, when there is
+    one (structure, controls); ``seams``: frames where bars meet.
     """
     if abs(motion.fps - EVAL_FPS) > 1e-6:
         raise ValueError(f"score_dance needs {EVAL_FPS} fps, got {motion.fps}")
     fps = motion.fps
     pos, world = forward_kinematics(motion)
     a, b = span
+    smpl_all = kinetic.smpl_positions(motion.skeleton, pos, world)
     kin = kinematic_beats(pos, fps)
-    m: dict = {
-        "beat_accuracy": mbeats.beat_accuracy(
-            mbeats.within(tracker_beats, a, b), mbeats.within(kin, a, b)
-        )
-    }
-    for variant in ("bailando", "fact"):
-        m[f"bas_{variant}"] = mbeats.beat_align_score(
-            mbeats.within(music_beats, a, b),
-            mbeats.within(mbeats.motion_beats(pos, fps, variant), a, b),
-            variant,
-        )
+    m: dict = sync_metrics(mbeats.DanceBeats.of(smpl_all, fps, kin), span, grid, other)
     if seams is not None and lib.seams is not None:
         rep = smoothness.seam_report(pos, fps, seams, lib.seams)
         m["seam_flagged_share"] = rep["flagged_share"]
@@ -220,7 +239,7 @@ def score_dance(
         m["controls_share"] = ctl["share"]
         m["controls"] = ctl
     lo, hi = int(round(a * fps)), max(int(round(b * fps)), int(round(a * fps)) + 3)
-    smpl = kinetic.smpl_positions(motion.skeleton, pos, world)[lo:hi]
+    smpl = smpl_all[lo:hi]
     plot = {
         "kinematic_beats": kin,
         "speed": joint_speed(pos, fps, 0.03),
@@ -235,6 +254,27 @@ def score_dance(
         nodes=None if nodes is None else np.asarray(nodes),
         plot=plot,
     )
+
+
+def sync_metrics(
+    dance: mbeats.DanceBeats,
+    span: tuple[float, float],
+    grid: mbeats.SyncGrid,
+    other: mbeats.SyncGrid | None,
+) -> dict:
+    """The sync metrics of one dance (``mbeats.SYNC_METRICS``) against ``grid``, each with its
+    chance rows: ``<name>_half`` against the grid shifted by half a beat (None for ``phase_r``,
+    which a constant shift leaves as it is) and ``<name>_other`` against ``other`` (None without
+    one); plus ``phase``, the motion beats' mean beat phase."""
+    own = mbeats.sync_scores(dance, grid, span)
+    half = mbeats.sync_scores(dance, grid.half_beat(), span)
+    far = mbeats.sync_scores(dance, other, span) if other is not None else {}
+    out: dict = {"phase": own["phase"]}
+    for key in mbeats.SYNC_METRICS:
+        out[key] = own[key]
+        out[f"{key}_half"] = None if key == "phase_r" else half[key]
+        out[f"{key}_other"] = far.get(key)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -317,7 +357,9 @@ def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec)
     )
 
 
-def _real_dances(lib: Library, song: Song, spec: Spec, song_no: int) -> list[Dance]:
+def _real_dances(
+    lib: Library, song: Song, spec: Spec, song_no: int, other: mbeats.SyncGrid | None
+) -> list[Dance]:
     if lib.dataset is None:
         return []
     clips = sorted(lib.dataset.clips, key=lambda c: c.id)
@@ -329,11 +371,16 @@ def _real_dances(lib: Library, song: Song, spec: Spec, song_no: int) -> list[Dan
         take = lib.take(clip.id)
         cut = min(take.n_frames, int(round(song.analysis.duration_s * EVAL_FPS)))
         motion = take.slice(0, cut)
-        own = clip.beat_source == "annotation"
-        beats = lib.dataset.beats(clip.id) if own else song.beats
-        music = beats if own else song.librosa_beats
         # the take's original bars that start inside the cut, for its motif signature
         bars = [b for b in lib.dataset.bars if b.clip_id == clip.id and b.start_s < cut / EVAL_FPS]
+        grid = song.grid
+        if clip.beat_source == "annotation" and bars:
+            # the take's own music: its annotated beats (for the BAS too) and signatures
+            grid = sync_grid(
+                np.array([b.beat_times for b in bars]),
+                np.array([COMMON_SIGNATURES.index(b.signature) for b in bars]),
+                lib.dataset.beats(clip.id),
+            )
         nodes = np.array(
             [graph.node_index(b.node_id) for b in bars if graph.has_node(b.node_id)],
             dtype=np.int64,
@@ -343,8 +390,8 @@ def _real_dances(lib: Library, song: Song, spec: Spec, song_no: int) -> list[Dan
             motion,
             spec,
             span=(0.0, cut / EVAL_FPS),
-            tracker_beats=beats,
-            music_beats=music,
+            grid=grid,
+            other=other,
             nodes=nodes if nodes.size else None,
         )
         d.metrics["take"] = clip.id
@@ -352,11 +399,13 @@ def _real_dances(lib: Library, song: Song, spec: Spec, song_no: int) -> list[Dan
     return out
 
 
-def _row_dances(lib: Library, song: Song, spec: Spec, row: str, song_no: int) -> list[Dance]:
+def _row_dances(
+    lib: Library, song: Song, spec: Spec, row: str, song_no: int, other: mbeats.SyncGrid | None
+) -> list[Dance]:
     analysis = song.analysis
     n_bars = len(analysis.bars)
     if row == "real":
-        return _real_dances(lib, song, spec, song_no)
+        return _real_dances(lib, song, spec, song_no, other)
     if row in ("random_walk", "clip_concat"):
         make = random_walk if row == "random_walk" else clip_concatenation
         paths: list[dict[str, Any]] = []
@@ -374,8 +423,8 @@ def _row_dances(lib: Library, song: Song, spec: Spec, row: str, song_no: int) ->
             motion,
             spec,
             span=span,
-            tracker_beats=song.beats,
-            music_beats=song.librosa_beats,
+            grid=song.grid,
+            other=other,
             bars=np.asarray(analysis.bars),
             nodes=p["nodes"],
             tags=list(analysis.tags),
@@ -436,6 +485,34 @@ def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[s
     return table
 
 
+def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
+    """Per row and sync metric (``mbeats.SYNC_METRICS``): ``value`` (mean over songs and
+    alternatives), ``half_beat`` and ``other_song`` (the chance rows' means) and, per chance row,
+    ``gain_*`` (mean of value − chance over the dances that have it) and ``ratio_*`` (their
+    mean value / mean chance); None where a chance row was not measured."""
+    table: dict = {}
+    for row in rows:
+        dances = [d.metrics for song in per_song for d in song.get(row, [])]
+        entry: dict = {}
+        for key in mbeats.SYNC_METRICS:
+            cell: dict = {"value": _mean(m.get(key) for m in dances)}
+            for chance in ("half_beat", "other_song"):
+                suffix = "_half" if chance == "half_beat" else "_other"
+                pairs = [
+                    (m[key], m[key + suffix])
+                    for m in dances
+                    if m.get(key) is not None and m.get(key + suffix) is not None
+                ]
+                value = _mean(v for v, _ in pairs)
+                base = _mean(c for _, c in pairs)
+                cell[chance] = base
+                cell[f"gain_{chance}"] = _mean(v - c for v, c in pairs)
+                cell[f"ratio_{chance}"] = value / base if pairs and base else None
+            entry[key] = cell
+        table[row] = entry
+    return table
+
+
 # --------------------------------------------------------------------------------------------
 # entry points
 
@@ -451,12 +528,12 @@ def load_song(path: str | Path, analysis=None, graph: MotionGraph | None = None)
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)
-    return Song(
-        name=Path(path).name,
-        analysis=analysis,
-        beats=np.asarray(analysis.beats, dtype=float),
-        librosa_beats=mbeats.librosa_beats(y, sr),
+    grid = sync_grid(
+        analysis.bar_beats,
+        np.asarray(analysis.signature_topk, dtype=int).reshape(len(analysis.bars), -1)[:, 0],
+        mbeats.librosa_beats(y, sr),
     )
+    return Song(name=Path(path).name, analysis=analysis, grid=grid)
 
 
 def evaluate(
@@ -488,16 +565,19 @@ def evaluate(
     songs_out = []
     for s, song in enumerate(songs):
         dances: dict[str, list[Dance]] = {}
+        # the other-song chance row: the same dances against the next song's music
+        other = songs[(s + 1) % len(songs)].grid if len(songs) > 1 else None
         for row in rows:
             if progress:
                 progress(song.name, row)
-            dances[row] = _row_dances(lib, song, spec, row, s)
+            dances[row] = _row_dances(lib, song, spec, row, s, other)
         per_song.append(dances)
         songs_out.append(
             {
                 "song": song.name,
                 "analysis": song.analysis.summary(),
-                "librosa_beats": len(song.librosa_beats),
+                "librosa_beats": len(song.grid.percussive_beats),
+                "rhythm_points": len(song.grid.rhythm_points),
                 "rows": {
                     row: {
                         "mean": {k: _mean(d.metrics.get(k) for d in ds) for k in SCALARS},
@@ -514,6 +594,7 @@ def evaluate(
         "spec": spec.model_dump(mode="json"),
         "fps": EVAL_FPS,
         "rows": to_json_types(table),
+        "sync": to_json_types(sync_table(per_song, rows)),
         "songs": songs_out,
         "seconds": round(time.perf_counter() - t0, 2),
     }
@@ -524,9 +605,11 @@ def evaluate(
 def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | None = None) -> dict:
     """Score one existing synthesize/job result folder (``timeline.json`` + ``alternatives/*.bvh``)
     against ``lib`` (the graph it was danced from); writes ``metrics.json`` and ``report.html``
-    into the folder. Music beats for the Beat Align Scores come from ``audio`` (default: the song
-    recorded in the timeline, when it is found beside the result), else from the timeline's bars
-    (our tracker's beats, labelled so in the metrics)."""
+    into the folder. The music side comes from ``audio`` (default: the song recorded in the
+    timeline, when it is found beside the result): librosa's percussive beats for the Beat Align
+    Scores and the rhythm signatures of the timeline's bars for the rhythm points; without
+    audio, the timeline's bars' beats stand in for the BAS's music beats (labelled so in the
+    metrics) and there are no rhythm points (CM beat accuracy not measured)."""
     from dancegraph.errors import NotFoundError
     from dancegraph.motion.bvh import read_bvh
     from dancegraph.music.analysis import MusicAnalysis
@@ -542,16 +625,23 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
     spec = Spec.model_validate(timeline.get("provenance", {}).get("spec", {}))
     bar_rows = timeline.get("bars", [])
     bars = np.array([[b["start_s"], b["end_s"]] for b in bar_rows], dtype=float).reshape(-1, 2)
+    bar_beats = np.array([b.get("beats", [0] * 5) for b in bar_rows], dtype=float).reshape(-1, 5)
     beats = np.array([t for b in bar_rows for t in b.get("beats", [])[:4]], dtype=float)
     tags = [b.get("tag", {}) for b in bar_rows]
-    song_beats = beats
-    source = "timeline"
+    topk = np.zeros((len(bars), 3), dtype=int)
     if audio is not None:
         from dancegraph.music.decode import load_audio
+        from dancegraph.music.features import FEATURE_SR, frame_features
+        from dancegraph.rhythm.music import song_signatures
 
-        y, sr = load_audio(audio, sr=22050)
-        song_beats = mbeats.librosa_beats(y, sr)
+        y, sr = load_audio(audio, sr=FEATURE_SR)
+        ff = frame_features(y, sr)
+        _, topk, _ = song_signatures(ff, bar_beats)
+        grid = sync_grid(bar_beats, topk[:, 0], mbeats.librosa_beats(y, sr))
         source = "librosa_percussive"
+    else:
+        grid = replace(sync_grid(bar_beats, topk[:, 0], beats), rhythm_points=np.zeros(0))
+        source = "timeline"
     fps = float(timeline["fps"])
     dances = []
     for alt in timeline.get("alternatives", []):
@@ -575,8 +665,7 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
             motion,
             spec,
             span=(float(bars[0, 0]), float(bars[-1, 1])) if len(bars) else (0.0, 0.0),
-            tracker_beats=beats,
-            music_beats=song_beats,
+            grid=grid,
             bars=bars,
             nodes=nodes,
             tags=tags,
@@ -599,15 +688,15 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
         beat_positions=np.tile([1, 2, 3, 4], len(bars)),
         downbeats=bars[:, 0],
         bars=bars,
-        bar_beats=np.array([b.get("beats", [0] * 5) for b in bar_rows], dtype=float),
+        bar_beats=bar_beats,
         phrases=list(timeline.get("phrases", [])),
         tags=tags,
         signature_scores=np.zeros((len(bars), 13)),
-        signature_topk=np.zeros((len(bars), 3), dtype=int),
+        signature_topk=topk,
         bar_onset_rms=np.zeros((len(bars), 2, 200)),
         method=timeline["song"].get("method", ""),
     )
-    song = Song(folder.name, analysis, beats, song_beats)
+    song = Song(folder.name, analysis, grid)
     per_song = [{"result": dances}]
     lib_rows = aggregate(lib, per_song, ["result"])
     metrics = {
@@ -617,6 +706,7 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
         "fps": EVAL_FPS,
         "music_beats": source,
         "rows": to_json_types(lib_rows),
+        "sync": to_json_types(sync_table(per_song, ["result"])),
         "songs": [
             {
                 "song": folder.name,

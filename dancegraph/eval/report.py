@@ -1,6 +1,7 @@
 """The evaluation's ``report.html``: one self-contained page (inline PNG plots, no external files).
 
-The table of rows × metrics comes first, then per song four plots of our dance (the first
+The table of rows × metrics comes first, then the sync table (every sync metric beside its
+chance rows and the gain over each), then per song four plots of our dance (the first
 alternative of the ``ours`` row, or of a scored result): music beats against kinematic beats on a
 timeline, the bars and phrases with the chosen nodes, the per-bar costs, and the motif-signature
 histogram against its target.
@@ -47,6 +48,43 @@ def _table(rows: dict) -> str:
         cells = "".join(f"<td>{_fmt(entry.get(k))}</td>" for k in cols)
         body.append(f"<tr><th>{html.escape(ROW_TITLES.get(row, row))}</th>{cells}</tr>")
     return f"<table><tr><th>row</th>{head}</tr>{''.join(body)}</table>"
+
+
+#: The sync table's metrics (``metrics.beats``) with the music points and motion beats each compares.
+SYNC_TITLES: dict[str, str] = {
+    "cm_accuracy": "CM beat acc. (rhythm points, Shiratori beats, ±0.1 s)",
+    "beat_accuracy": "Beat acc. (all beats, kinematic beats, ±0.1 s)",
+    "bas_bailando": "BAS (Bailando)",
+    "bas_fact": "BAS (FACT)",
+    "phase_r": "Phase concentration R (Shiratori beats)",
+}
+
+
+def _sync_table(sync: dict) -> str:
+    """Per metric and row: the value, the half-beat and other-song chance rows, and the gain
+    over each (difference; for the accuracies also the ratio)."""
+    head = (
+        "<tr><th>metric</th><th>row</th><th>value</th><th>half-beat shift</th>"
+        "<th>gain</th><th>× chance</th><th>other song</th><th>gain</th><th>× chance</th></tr>"
+    )
+    body = []
+    for key, title in SYNC_TITLES.items():
+        for row, entry in sync.items():
+            cell = entry.get(key) or {}
+            ratio = key.endswith("accuracy")
+            cells = [cell.get("value")]
+            for chance in ("half_beat", "other_song"):
+                cells += [
+                    cell.get(chance),
+                    cell.get(f"gain_{chance}"),
+                    cell.get(f"ratio_{chance}") if ratio else None,
+                ]
+            tds = "".join(f"<td>{_fmt(v)}</td>" for v in cells)
+            body.append(
+                f"<tr><th>{html.escape(title)}</th><th>{html.escape(ROW_TITLES.get(row, row))}"
+                f"</th>{tds}</tr>"
+            )
+    return f"<table>{head}{''.join(body)}</table>"
 
 
 def _beats_plot(song, dance) -> str:
@@ -154,6 +192,13 @@ def write_report(path: Path, metrics: dict, songs, per_song, our_row: str = "our
         "library's real dances, normalised by the library's statistics. Div.: mean pairwise "
         "distance of normalised kinetic features.</p>",
         _table(metrics["rows"]),
+        "<h2>Sync against chance</h2>",
+        "<p>Each sync metric of each row beside its chance rows: the same dances against the "
+        "song's beats and rhythm points shifted by half a beat, and against another song's (the "
+        "next song evaluated; none with one song). Phase R ignores a constant shift, so it has "
+        "no half-beat row. CM beat acc.: ChoreoMaster's, over the rhythm points (active slots "
+        "of each bar's top rhythm signature).</p>",
+        _sync_table(metrics.get("sync", {})),
     ]
     for song, dances in zip(songs, per_song, strict=True):
         ours = dances.get(our_row) or []

@@ -16,8 +16,9 @@ Arrays (N nodes, E edges, R motion rows, F frames per bar, J joints, D transitio
   its take; ``node_kind (N,) int8`` (``KINDS``); ``node_tags (N,) uint32`` bit mask of
   ``manifest["tags"]``; ``node_source (N, 2) int32`` original bars an augmentation came from
   (-1 when unused); ``mirror_of (N,) int32`` the mirrored node (-1: none).
-- ``style (N, 32) float32`` style embedding; ``signature (N,) int8`` index into
-  ``COMMON_SIGNATURES`` (nearest common signature); ``motif (N,) int32``.
+- ``style (N, 32) float32`` style embedding; ``signature (N,) uint8`` the node's rhythm
+  signature as a slot pattern (bit i = slot i, ``rhythm.signatures.to_pattern``); ``motif (N,)
+  int32``.
 - ``entry (N, D) float32`` / ``exit (N, D) float32`` transition features (see ``build``), and
   ``entry_pc`` / ``exit_pc (N, P) float32`` their per-block PCA (``manifest["pc_blocks"]``) for
   on-demand costs of transitions that are not edges.
@@ -49,7 +50,7 @@ from dancegraph.errors import ModelFileError, NotFoundError
 from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.store import ObjectStore, file_sha256
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: signature is a slot pattern (was an index into COMMON_SIGNATURES)
 
 #: node kinds, index = ``node_kind`` value
 KINDS = ("original", "mirror", "blend", "shuffle")

@@ -8,8 +8,14 @@ k·F/4), plus augmentations flagged by tag so users can exclude them:
 - ``shuffle`` (capped): beats 1–2 of bar a followed by beats 3–4 of bar b (root re-aligned at the
   seam), id ``<a>~s<k>``;
 
-blends and shuffles only between bars with the same rhythm signature whose styles are close (within
-the ``style_quantile`` of all pair distances). All augmentations also carry the tag ``augmented``.
+blends and shuffles only between bars with the same (nearest common) rhythm signature whose styles
+are close (within the ``style_quantile`` of all pair distances). All augmentations also carry the
+tag ``augmented``.
+
+A node's rhythm signature is the slot pattern of its own kinematic beats (the dataset's per-bar
+label, ``BarSet.signature``, not snapped to a common signature): a mirror keeps its bar's, a blend
+its upper body's bar's (the pair shares the signature), a shuffle has beats 1–2 of bar a's and
+beats 3–4 of bar b's.
 
 Edges p → q where T = λ8·T_d + λ9·T_z < δT. T_d compares p's last ``window`` frames with the
 ``window`` frames that *precede* q in its own take (Kovar et al.'s criterion: q may follow p when
@@ -39,7 +45,7 @@ from dancegraph.graph import artifact, choreography
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays
 from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
-from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits
+from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits, to_pattern
 from dancegraph.store import ObjectStore
 
 Progress = Callable[[str, float], None]
@@ -79,9 +85,10 @@ class BarSet:
     """Bars of dance as arrays, the input of ``build_arrays``.
 
     ``root (Nb, lead + F, 3)`` metres and ``rotations (Nb, lead + F, J, 4)`` local rotations, each
-    bar resampled beat-aligned with ``lead`` frames before its downbeat; ``clip (Nb,)`` index into ``clips``; ``bar (Nb,)`` bar index in its take;
-    ``duration (Nb,)`` seconds; ``signature`` 8-character strings; ``frames (Nb, 2)`` source
-    frame range [start, end) for provenance.
+    bar resampled beat-aligned with ``lead`` frames before its downbeat; ``clip (Nb,)`` index into
+    ``clips``; ``bar (Nb,)`` bar index in its take; ``duration (Nb,)`` seconds; ``signature``
+    8-character strings, the slots of the bar's kinematic beats (any pattern); ``frames (Nb, 2)``
+    source frame range [start, end) for provenance.
     """
 
     skeleton: Skeleton
@@ -568,8 +575,10 @@ def build_arrays(
         sig_.append(sigs)  # mirroring keeps the timing, so the signature
         aug_no.append(np.zeros(nb, np.int32))
     lower = _lower_body(sk)
+    # pairs to blend or shuffle share the nearest common signature
+    common = [COMMON_SIGNATURES[k] for k in nearest_common(np.stack([to_bits(x) for x in sigs]))]
     blend_pairs = _augment_pairs(
-        style0, sigs, clip, params.style_quantile, int(params.blend_ratio * nb), params.seed
+        style0, common, clip, params.style_quantile, int(params.blend_ratio * nb), params.seed
     )
     if blend_pairs:
         a = np.array([p[0] for p in blend_pairs])
@@ -586,7 +595,7 @@ def build_arrays(
         sig_.append([sigs[i] for i in a])
         aug_no.append(np.arange(len(a), dtype=np.int32))
     shuffle_pairs = _augment_pairs(
-        style0, sigs, clip, params.style_quantile, int(params.shuffle_ratio * nb), params.seed + 1
+        style0, common, clip, params.style_quantile, int(params.shuffle_ratio * nb), params.seed + 1
     )
     if shuffle_pairs:
         sr, sq = [], []
@@ -602,7 +611,8 @@ def build_arrays(
         sources.append(np.stack([a, b], axis=1))
         clips_.append(clip[a])
         bars_.append(bar[a])
-        sig_.append([sigs[i] for i in a])
+        # slots 0-3 (beats 1-2) of a, 4-7 of b; a signature string has slot 0 rightmost
+        sig_.append([sigs[j][:4] + sigs[i][4:] for i, j in zip(a, b, strict=True)])
         aug_no.append(np.arange(len(a), dtype=np.int32))
     if progress:
         progress("augment", 1.0)
@@ -647,9 +657,7 @@ def build_arrays(
     if params.mirror:
         mirror_of[:nb] = np.arange(nb) + nb
         mirror_of[nb : 2 * nb] = np.arange(nb)
-    signature = nearest_common(
-        np.stack([to_bits(s) for s in np.concatenate([np.array(s, dtype=object) for s in sig_])])
-    ).astype(np.int8)
+    signature = to_pattern(np.stack([to_bits(x) for x in (y for part in sig_ for y in part)]))
 
     takes = [np.nonzero(clip == c)[0] for c in range(len(bars.clips))]
     takes = [t[np.argsort(bar[t])] for t in takes if t.size]
@@ -766,7 +774,7 @@ def bars_from_dataset(
             clip.append(cindex[cid])
             bar.append(b.index)
             dur.append(float(b.beat_times[4] - b.beat_times[0]))
-            sig.append(b.signature)
+            sig.append(b.signature_raw or b.signature)
             frames.append((b.start_frame, b.end_frame))
         if progress:
             progress("bars", (k + 1) / len(clips))

@@ -12,58 +12,42 @@ import numpy as np
 
 from dancegraph.errors import SpecError
 from dancegraph.graph import _dp
-from dancegraph.graph.artifact import MotionGraph
-from dancegraph.graph.search import (
-    RECREATE_WEIGHT,
-    STAGE_WEIGHT,
-    WAYPOINT_WEIGHT,
-    Alternative,
-    SearchContext,
-    bar_terms,
-    root_trajectory,
-)
-from dancegraph.spec import Spec
+from dancegraph.graph.problem import RECREATE_WEIGHT, STAGE_WEIGHT, WAYPOINT_WEIGHT, Problem
+from dancegraph.graph.search import Alternative, bar_terms, root_trajectory
 
 STAGE_TOLERANCE = 1e-6
 
 
-def breakdown(
-    graph: MotionGraph,
-    music: dict,
-    spec: Spec,
-    nodes: np.ndarray,
-    ctx: SearchContext,
-    pairs: list,
-    contradictions: list,
-) -> Alternative:
-    """Cost breakdown and constraint check of path ``nodes`` (one per bar); raises SpecError
-    when the stage or a waypoint is missed (no path satisfied it)."""
+def breakdown(graph, problem: Problem, spec, nodes) -> Alternative:
+    """Per-bar costs and the constraint check of the path ``nodes (T,)`` on the compiled
+    ``problem``; raises ``SpecError`` where it leaves the stage or misses a waypoint."""
     w = spec.weights
     n_bars = len(nodes)
     nodes = np.asarray(nodes, dtype=np.int64)
-    st, rh = bar_terms(graph, ctx.zm, ctx.sig_cost, nodes, spec)
+    st, rh = bar_terms(graph, problem.zm, problem.sig_cost, nodes, spec)
     user = np.zeros(n_bars)
-    if ctx.recreate is not None:
-        user += RECREATE_WEIGHT * (np.asarray(graph.motif)[nodes] != ctx.recreate)
-    trans, offgraph = _dp.path_transitions(ctx.dp, nodes)
+    if problem.recreate is not None:
+        user += RECREATE_WEIGHT * (np.asarray(graph.motif)[nodes] != problem.recreate)
+    trans, offgraph = _dp.path_transitions(problem.dp, nodes)
     trans *= w.transition
     structure = np.zeros(n_bars)
     violations = []
     mirror_of = np.asarray(graph.mirror_of)
-    for a, b, par, rule in pairs:
+    for a, b, par, rule in problem.pairs:
         want = nodes[a] if par == 0 else mirror_of[nodes[a]]
         if nodes[b] != want:
             structure[b] += w.structure
             reason = (
                 "the repeat and mirror rules contradict each other here"
-                if (a, b, par, rule) in contradictions
+                if (a, b, par, rule) in problem.contradictions
                 else f"bar {b} should {'repeat' if par == 0 else 'mirror'} bar {a}"
             )
             violations.append({"bars": [int(a), int(b)], "rule": rule, "reason": reason})
     # trajectory: stage and waypoints
-    placements = root_trajectory(graph, nodes, ctx.start)
-    stage = ctx.stage
-    radius = ctx.radius
+    track = problem.track
+    placements = root_trajectory(graph, nodes, track.start)
+    stage = track.stage[:4]
+    radius = np.asarray(graph.radius, dtype=np.float64)
     if stage[0] < stage[1]:
         r = radius[nodes]
         x, z = placements[:, 0], placements[:, 1]
@@ -81,19 +65,19 @@ def breakdown(
                 code="constraint_conflict",
                 field="stage",
             )
-    wp_bar, wp_idx, wp_pos, wp_tol = ctx.waypoints
-    path = ctx.root_path
-    for i in range(len(wp_bar)):
-        t = int(wp_bar[i])
+    path = problem.dp.path
+    for i in range(len(track.wp_bar)):
+        t = int(track.wp_bar[i])
         x, z, yaw = placements[t]
-        px, pz = path[nodes[t], wp_idx[i]]
+        px, pz = path[nodes[t], track.wp_idx[i]]
         c, s = np.cos(yaw), np.sin(yaw)
-        d = float(np.hypot(x + px * c + pz * s - wp_pos[i, 0], z - px * s + pz * c - wp_pos[i, 1]))
-        miss = max(0.0, d - wp_tol[i])
+        wp_pos, wp_tol = track.wp_pos[i], track.wp_tol[i]
+        d = float(np.hypot(x + px * c + pz * s - wp_pos[0], z - px * s + pz * c - wp_pos[1]))
+        miss = max(0.0, d - wp_tol)
         user[t] += WAYPOINT_WEIGHT * miss
         if miss > 1e-6:
             raise SpecError(
-                f"waypoints[{i}]: no path found that passes within {wp_tol[i]} m of {wp_pos[i].tolist()} (closest {d:.2f} m)",
+                f"waypoints[{i}]: no path found that passes within {wp_tol} m of {wp_pos.tolist()} (closest {d:.2f} m)",
                 code="constraint_conflict",
                 field=f"waypoints[{i}]",
             )

@@ -1,29 +1,42 @@
-"""Beat alignment of a dance to its music: ChoreoMaster's beat accuracy and the Beat Align Score.
+"""Beat alignment of a dance to its music, as the seeds measure it, and its chance rows.
 
-All motion inputs are world joint positions ``(F, J, 3)`` in metres at ``fps`` (the published
-scores are defined at 60 fps: resample first). Beat times are seconds.
+Motion inputs are SMPL-like joint positions ``(F, 24, 3)`` in metres (``metrics.kinetic``'s
+``smpl_positions``, in ``SMPL_JOINTS`` order) at ``fps``; the published scores are defined at
+60 fps. Times are seconds. Each metric names the motion beats and the music points it compares:
 
-- ``beat_accuracy``: ChoreoMaster's measure, the share of music beats that have a kinematic beat
-  (``dancegraph.motion.features.kinematic_beats``) within ``ACCURACY_TOLERANCE_S``.
+- ``cm_accuracy`` (ChoreoMaster's beat accuracy): the share of the music's *rhythm points* (the
+  active slots of each bar's rhythm signature, ``rhythm.music.rhythm_points``) that have a
+  Shiratori-style motion beat (``rhythm.motion.shiratori_beats``) within
+  ``ACCURACY_TOLERANCE_S``.
+- ``beat_accuracy`` (all beats): the same share over *every* tracked beat, with the kinematic
+  beats of ``motion.features``: a different metric, labelled so.
 - Beat Align Score, σ = 3 frames at 60 fps, in its two published variants (they differ, so every
-  number carries its label):
+  number carries its label); music beats from librosa's tracker on the percussive part:
 
-  * ``bailando``: Li et al., "Bailando" (CVPR 2022). Music beats from librosa's beat tracker on
-    the percussive part (``librosa_beats``); motion beats are the local minima of the mean joint
-    speed smoothed by a Gaussian of σ = 5 frames; the score is averaged over *music* beats:
-    mean_m exp(−min_k (m − k)² / 2σ²).
-  * ``fact``: Li et al., "AI Choreographer" (FACT / AIST++, ICCV 2021). Motion beats are the
-    local minima of the *sum* of joint speeds that are the lowest within 10 frames either side;
-    the score is averaged over *motion* beats: mean_k exp(−min_m (k − m)² / 2σ²).
+  * ``bailando`` (Li et al., CVPR 2022): motion beats are the strict local minima of the mean
+    joint displacement per frame smoothed by a Gaussian of σ = 5 frames, at the frame where the
+    displacement starts; averaged over *music* beats: mean_m exp(−min_k (m − k)² / 2σ²).
+  * ``fact`` (AI Choreographer, ICCV 2021): motion beats are the minima of the *summed* joint
+    displacement (a zero first frame) that are the lowest within 10 frames either side, at the
+    frame the displacement ends; averaged over *motion* beats.
+- ``phase_concentration``: R = |mean e^{2πiφ}| of the motion beats' phases φ on the song's beat
+  grid (0: no relation, 1: every motion beat at one phase), and that mean phase (in beats).
+
+Chance rows (``SyncGrid``): the same dance against the music shifted by half a beat
+(``SyncGrid.half_beat``) and against another song's grid. R does not change under a constant
+phase shift, so its only chance row is another song's grid.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import argrelextrema
+
+from dancegraph.rhythm.motion import shiratori_beats
 
 #: Frame rate at which the published scores are defined.
 BAS_FPS = 60.0
@@ -33,10 +46,8 @@ BAS_SIGMA_S = 3.0 / BAS_FPS
 BAILANDO_SMOOTH_FRAMES = 5.0
 #: FACT's motion beats are minima over ±10 frames (at 60 fps).
 FACT_ORDER_FRAMES = 10
-#: A music beat is "hit" when a kinematic beat lies within this many seconds (ChoreoMaster
-#: reports beat hits at a tolerance of a few frames; 0.1 s is 3 frames at 30 fps, 6 at 60).
+#: A music point is "hit" when a motion beat lies within this many seconds (ChoreoMaster).
 ACCURACY_TOLERANCE_S = 0.1
-
 Variant = Literal["bailando", "fact"]
 
 
@@ -53,7 +64,7 @@ def librosa_beats(y: np.ndarray, sr: int) -> np.ndarray:
     return np.asarray(librosa.frames_to_time(frames, sr=sr), dtype=float)
 
 
-def _frame_speeds(positions: np.ndarray) -> np.ndarray:
+def _displacements(positions: np.ndarray) -> np.ndarray:
     """``(F-1, J)`` joint displacement per frame (m/frame) of ``positions (F, J, 3)``."""
     return np.linalg.norm(np.diff(np.asarray(positions, dtype=float), axis=0), axis=-1)
 
@@ -61,25 +72,24 @@ def _frame_speeds(positions: np.ndarray) -> np.ndarray:
 def motion_beats(positions: np.ndarray, fps: float, variant: Variant) -> np.ndarray:
     """``(K,)`` motion beat times (s) of ``positions (F, J, 3)`` at ``fps`` by ``variant``'s rule.
 
-    ``bailando``: strict local minima of the mean joint speed smoothed with σ = 5 frames·fps/60.
-    ``fact``: minima of the summed joint speed that are the lowest within 10·fps/60 frames either
-    side. Speed sample i sits between frames i and i+1; beats are reported at frame i + 1 as
-    the published code does (its velocity array starts with a zero row).
+    ``bailando``: strict local minima of the mean joint displacement, smoothed with σ =
+    5 frames·fps/60; displacement i (frames i → i+1) is reported at frame i, as the published
+    code indexes it. ``fact``: the summed joint displacement with a zero first row (displacement
+    i − 1 → i at frame i), minima lowest within 10·fps/60 frames either side (scipy's
+    ``argrelextrema``, clipped at the ends). Raises ``ValueError`` for another variant.
     """
-    speeds = _frame_speeds(positions)
-    if speeds.shape[0] < 3:
+    disp = _displacements(positions)
+    if variant not in ("bailando", "fact"):
+        raise ValueError(f"unknown Beat Align Score variant {variant!r}")
+    if disp.shape[0] < 3:
         return np.zeros(0)
     scale = fps / BAS_FPS
     if variant == "bailando":
-        envelope = gaussian_filter1d(speeds.mean(axis=1), BAILANDO_SMOOTH_FRAMES * scale)
-        idx = argrelextrema(envelope, np.less)[0]
-    elif variant == "fact":
-        envelope = speeds.sum(axis=1)
-        order = max(1, int(round(FACT_ORDER_FRAMES * scale)))
-        idx = argrelextrema(envelope, np.less, order=order)[0]
-    else:
-        raise ValueError(f"unknown Beat Align Score variant {variant!r}")
-    return (idx + 1) / fps
+        envelope = gaussian_filter1d(disp.mean(axis=1), BAILANDO_SMOOTH_FRAMES * scale)
+        return argrelextrema(envelope, np.less)[0] / fps
+    envelope = np.concatenate([[0.0], disp.sum(axis=1)])
+    order = max(1, int(round(FACT_ORDER_FRAMES * scale)))
+    return argrelextrema(envelope, np.less, order=order)[0] / fps
 
 
 def beat_align_score(
@@ -109,19 +119,125 @@ def beat_align_score(
 
 
 def beat_accuracy(
-    music_beats: np.ndarray, kinematic_beats: np.ndarray, tolerance_s: float = ACCURACY_TOLERANCE_S
+    points: np.ndarray, motion_beats: np.ndarray, tolerance_s: float = ACCURACY_TOLERANCE_S
 ) -> float:
-    """Share in [0, 1] of ``music_beats (N,)`` with a kinematic beat ``(K,)`` within
-    ``tolerance_s`` seconds (ChoreoMaster's beat accuracy); 0 when there are no music beats."""
-    music = np.asarray(music_beats, dtype=float).reshape(-1)
-    kin = np.asarray(kinematic_beats, dtype=float).reshape(-1)
+    """Share in [0, 1] of the music ``points (N,)`` (rhythm points, or beats) with a motion beat
+    ``(K,)`` within ``tolerance_s`` seconds; 0 when there are no points."""
+    music = np.asarray(points, dtype=float).reshape(-1)
+    kin = np.asarray(motion_beats, dtype=float).reshape(-1)
     if music.size == 0 or kin.size == 0:
         return 0.0
     d = np.abs(music[:, None] - kin[None, :]).min(axis=1)
     return float(np.mean(d <= tolerance_s + 1e-9))
 
 
-def within(beats: np.ndarray, start_s: float, end_s: float) -> np.ndarray:
-    """The beats ``(N,)`` inside ``[start_s, end_s]`` (the span a dance actually moves in)."""
+def phase_concentration(beats: np.ndarray, events: np.ndarray) -> tuple[float, float]:
+    """``(R, phase)`` of ``events (K,)`` on the beat grid ``beats (N,)`` (s): each event inside
+    the grid gets the phase φ ∈ [0, 1) of its place between the two beats around it;
+    R = |mean e^{2πiφ}| and ``phase`` (beats, in [0, 1)) is the mean direction. ``(0, 0)`` with
+    fewer than two beats or no event inside them."""
     b = np.asarray(beats, dtype=float).reshape(-1)
+    e = np.asarray(events, dtype=float).reshape(-1)
+    if b.size < 2:
+        return 0.0, 0.0
+    e = e[(e >= b[0]) & (e < b[-1])]
+    if e.size == 0:
+        return 0.0, 0.0
+    phi = np.interp(e, b, np.arange(b.size)) % 1.0
+    z = np.exp(2j * np.pi * phi).mean()
+    return float(abs(z)), float((np.angle(z) / (2 * np.pi)) % 1.0)
+
+
+def half_beat_shift(times: np.ndarray, beats: np.ndarray) -> np.ndarray:
+    """``times (N,)`` each moved later by half the beat period around it (the interval of
+    ``beats (M,)`` it falls in; the nearest interval outside the grid)."""
+    t = np.asarray(times, dtype=float).reshape(-1)
+    b = np.asarray(beats, dtype=float).reshape(-1)
+    if b.size < 2 or t.size == 0:
+        return t.copy()
+    k = np.clip(np.searchsorted(b, t, side="right") - 1, 0, b.size - 2)
+    return t + 0.5 * (b[k + 1] - b[k])
+
+
+def within(times: np.ndarray, start_s: float, end_s: float) -> np.ndarray:
+    """The times ``(N,)`` inside ``[start_s, end_s]`` (the span a dance actually moves in)."""
+    b = np.asarray(times, dtype=float).reshape(-1)
     return b[(b >= start_s) & (b <= end_s)]
+
+
+@dataclass(frozen=True)
+class SyncGrid:
+    """The music side of the sync metrics, seconds: ``beats (N,)`` the tracker's beats,
+    ``percussive_beats (M,)`` librosa's on the percussive part (the BAS's), ``rhythm_points
+    (P,)`` the active slots of each bar's rhythm signature, ``span`` the music's bars (start of
+    the first, end of the last)."""
+
+    beats: np.ndarray
+    percussive_beats: np.ndarray
+    rhythm_points: np.ndarray
+    span: tuple[float, float]
+
+    def half_beat(self) -> SyncGrid:
+        """The same grid with every point half a beat later (a chance row)."""
+        return SyncGrid(
+            beats=half_beat_shift(self.beats, self.beats),
+            percussive_beats=half_beat_shift(self.percussive_beats, self.beats),
+            rhythm_points=half_beat_shift(self.rhythm_points, self.beats),
+            span=self.span,
+        )
+
+
+@dataclass(frozen=True)
+class DanceBeats:
+    """The motion side, seconds: ``shiratori``, ``bailando``, ``fact`` (``motion_beats``) and
+    ``kinematic`` (``motion.features.kinematic_beats``, the all-beats accuracy's)."""
+
+    shiratori: np.ndarray
+    bailando: np.ndarray
+    fact: np.ndarray
+    kinematic: np.ndarray
+
+    @classmethod
+    def of(cls, smpl: np.ndarray, fps: float, kinematic: np.ndarray) -> DanceBeats:
+        """Every detector on ``smpl (F, 24, 3)`` at ``fps``; ``kinematic (K,)`` given."""
+        return cls(
+            shiratori=shiratori_beats(smpl, fps),
+            bailando=motion_beats(smpl, fps, "bailando"),
+            fact=motion_beats(smpl, fps, "fact"),
+            kinematic=np.asarray(kinematic, dtype=float),
+        )
+
+
+#: The sync metrics of ``sync_scores``, in table order.
+SYNC_METRICS: tuple[str, ...] = (
+    "cm_accuracy",
+    "beat_accuracy",
+    "bas_bailando",
+    "bas_fact",
+    "phase_r",
+)
+
+
+def sync_scores(dance: DanceBeats, grid: SyncGrid, span: tuple[float, float]) -> dict:
+    """Every sync metric of ``dance`` against ``grid``, counting only the points and motion beats
+    inside ``span`` (where the dance moves) and the grid's own span: ``{cm_accuracy,
+    beat_accuracy, bas_bailando, bas_fact, phase_r, phase}`` (``phase``: the motion beats' mean
+    phase on the beat grid, in beats; ``cm_accuracy`` None where the grid has no rhythm
+    points there)."""
+    a, b = max(span[0], grid.span[0]), min(span[1], grid.span[1])
+    r, phase = phase_concentration(within(grid.beats, a, b), within(dance.shiratori, a, b))
+    points = within(grid.rhythm_points, a, b)
+    return {
+        "cm_accuracy": beat_accuracy(points, within(dance.shiratori, a, b))
+        if points.size
+        else None,
+        "beat_accuracy": beat_accuracy(within(grid.beats, a, b), within(dance.kinematic, a, b)),
+        "bas_bailando": beat_align_score(
+            within(grid.percussive_beats, a, b), within(dance.bailando, a, b), "bailando"
+        ),
+        "bas_fact": beat_align_score(
+            within(grid.percussive_beats, a, b), within(dance.fact, a, b), "fact"
+        ),
+        "phase_r": r,
+        "phase": phase,
+    }

@@ -1,7 +1,7 @@
 """Structure and control satisfaction of a path, and its motif-signature distance to a target.
 
 A path is ``nodes (T,)``: the graph node index danced on each music bar. Structure pairs come
-from the music's tags by the search's own rule (``search.structure_pairs``): a repeat pair is
+from the music's tags by the search's own rule (``problem.structure_pairs``): a repeat pair is
 satisfied when both bars dance the same node, a mirror pair when the later bar dances the
 earlier one's mirror. Controls are the spec's include / exclude / waypoints / stage / motifs /
 signature / recreate entries, each checked on the path (and on the rendered root trajectory for
@@ -14,7 +14,7 @@ import numpy as np
 
 from dancegraph.graph import choreography
 from dancegraph.graph.artifact import MotionGraph
-from dancegraph.graph.search import bars_in, match_nodes, structure_pairs, target_signature
+from dancegraph.graph.problem import bars_in, match_nodes, structure_pairs, target_signature
 from dancegraph.metrics.physical import stage_report
 from dancegraph.spec import Spec
 

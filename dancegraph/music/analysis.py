@@ -35,7 +35,7 @@ import numpy as np
 from dancegraph.errors import AudioError
 from dancegraph.music.features import FEATURE_SR, bar_onset_rms, frame_features
 from dancegraph.music.structure import analyze_structure
-from dancegraph.rhythm.music import music_signatures
+from dancegraph.rhythm.music import song_signatures
 
 BEATS_PER_BAR = 4
 
@@ -276,7 +276,7 @@ def analyze(path_or_array: str | os.PathLike | np.ndarray, sr: int | None = None
         raise AudioError("too few beats to form a single 4-beat bar", code="no_beat", field="audio")
     ff = frame_features(y, FEATURE_SR)
     st = analyze_structure(ff, bars, unit=phrase_unit(bt.meter))
-    scores, topk, _ = music_signatures(ff.onset, ff.frame_rate, bar_beats)
+    scores, topk, _ = song_signatures(ff, bar_beats)
     return MusicAnalysis(
         duration_s=duration,
         tempo_bpm=float(bt.tempo_bpm),

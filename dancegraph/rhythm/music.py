@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dancegraph.rhythm.signatures import N_SLOTS, scores_from_slot_evidence, top_k
+from dancegraph.rhythm.signatures import COMMON_BITS, N_SLOTS, scores_from_slot_evidence, top_k
 
 #: Half-width of the window searched for an onset around a slot: this many seconds, at most a
 #: quarter of a half beat (so neighbouring slots never share an onset).
@@ -40,6 +40,17 @@ def slot_times(bar_beats: np.ndarray, swing: float = 0.0) -> np.ndarray:
     lo = np.floor(pos).astype(int)
     frac = pos - lo
     return bar_beats[:, lo] * (1 - frac) + bar_beats[:, lo + 1] * frac
+
+
+def rhythm_points(bar_beats: np.ndarray, signatures: np.ndarray) -> np.ndarray:
+    """``(P,)`` seconds, sorted: the music's rhythm points, the active slots of each bar's rhythm
+    signature (ChoreoMaster's beat-accuracy denominator). ``bar_beats (B, 5)`` s;
+    ``signatures (B,)`` indices into ``COMMON_SIGNATURES`` (e.g. ``signature_topk[:, 0]``)."""
+    bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    bits = COMMON_BITS[np.asarray(signatures, dtype=int).reshape(-1)]
+    if len(bits) != len(bar_beats):
+        raise ValueError(f"{len(bits)} signatures for {len(bar_beats)} bars")
+    return np.sort(slot_times(bar_beats)[bits.astype(bool)])
 
 
 def _slot_peaks(
@@ -97,6 +108,14 @@ def slot_evidence(
     # level: a quiet section keeps its accents, a near-silent bar does not invent any.
     scale = np.maximum(ev.max(axis=1, keepdims=True), QUIET_FRACTION * ref)
     return np.clip(ev / scale, 0.0, 1.0)
+
+
+def song_signatures(
+    ff, bar_beats: np.ndarray, k: int = 3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``music_signatures`` of a song's frame features ``ff`` (``music.features.FrameFeatures``)
+    on its bars ``bar_beats (B, 5)`` s: from the accent curve (bands below 4 kHz, no hats)."""
+    return music_signatures(ff.accent, ff.frame_rate, bar_beats, k)
 
 
 def music_signatures(

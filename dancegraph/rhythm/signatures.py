@@ -3,7 +3,9 @@
 A signature marks which of the 8 half-beat slots of a 4-beat bar carry an accent. It is written
 as an 8-character string whose *rightmost* character is slot 0 (the downbeat); slot ``i`` sits at
 beat ``i / 2``. Even slots are regular beats, odd slots half beats. As arrays, signatures are
-``(8,)`` (or ``(N, 8)``) 0/1 vectors indexed by slot, so ``bits[0]`` is the downbeat.
+``(8,)`` (or ``(N, 8)``) 0/1 vectors indexed by slot, so ``bits[0]`` is the downbeat, or packed into one
+*pattern* byte (bit ``i`` = slot ``i``): any of the 256 slot patterns, not only the common ones
+(a bar of dance has the pattern its kinematic beats make).
 """
 
 from __future__ import annotations
@@ -62,6 +64,19 @@ def distance(a: np.ndarray | str, b: np.ndarray | str) -> np.ndarray:
 
 #: ``(13, 13)`` pairwise distances between the common signatures.
 COMMON_DISTANCES = distance(COMMON_BITS[:, None, :], COMMON_BITS[None, :, :])
+
+
+#: ``(256, 8)`` int8: every slot pattern's bits (row p is pattern p).
+PATTERN_BITS = ((np.arange(256)[:, None] >> np.arange(N_SLOTS)[None, :]) & 1).astype(np.int8)
+
+#: ``(13, 256)`` distances from each common signature to every slot pattern.
+PATTERN_DISTANCES = distance(COMMON_BITS[:, None, :], PATTERN_BITS[None, :, :])
+
+
+def to_pattern(signature: np.ndarray | str) -> np.ndarray:
+    """Signature string or slot-indexed bits ``(..., 8)`` → pattern byte(s) ``(...)`` uint8."""
+    bits = to_bits(signature) if isinstance(signature, str) else np.asarray(signature)
+    return (bits.astype(np.int64) << np.arange(N_SLOTS)).sum(axis=-1).astype(np.uint8)
 
 
 def nearest_common(bits: np.ndarray) -> np.ndarray:

@@ -204,7 +204,7 @@ def test_graph_built_with_learned_models_reports_and_uses_them(
 ):
     from dancegraph.cli import main
     from dancegraph.graph import artifact
-    from dancegraph.graph.search import music_inputs, music_style
+    from dancegraph.graph.problem import music_inputs, music_style
     from services.graphstore.client import LocalGraphStore
 
     style_path = style_run[0] / style_run[1]["path"]
@@ -310,7 +310,7 @@ def test_search_uses_the_e_m_styles_the_analysis_carries(learned_graph, song, de
 
     from dancegraph.embed.learned import add_music_terms
     from dancegraph.errors import SpecError
-    from dancegraph.graph.search import _music_arrays, music_style
+    from dancegraph.graph.problem import _music_arrays, music_style
     from dancegraph.music.analysis import MusicAnalysis
     from dancegraph.spec import parse_spec
     from services.graphstore.client import LocalGraphStore

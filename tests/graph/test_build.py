@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -219,3 +221,31 @@ def test_compressed_features_keep_transition_costs(demo_build):
     assert arrays["exit_pc"].shape[1] < arrays["exit"].shape[1] / 4
     assert np.all(pc <= full + 1e-3)  # a projection never lengthens a difference
     assert np.median((full - pc) / full) < 0.05 and np.corrcoef(full, pc)[0, 1] > 0.98
+
+
+def test_node_signatures_are_the_slot_patterns_of_their_own_beats(demo_bars, demo_build):
+    from dancegraph.rhythm.signatures import nearest_common, to_bits, to_pattern, to_string
+
+    # bar b of the first shuffle gets an accent on the half beat after beat 3 (slot 5): a pattern
+    # no common signature has, with the same nearest one (so the same pairs are drawn)
+    kind, src = demo_build[0]["node_kind"], demo_build[0]["node_source"]
+    a0, b0 = src[kind == 3][0]
+    sigs = list(demo_bars.signature)
+    bits = to_bits(sigs[b0])
+    bits[5] = 1 - bits[5]
+    assert nearest_common(bits) == nearest_common(to_bits(sigs[b0]))
+    sigs[b0] = to_string(bits)
+    arrays, _, _ = build_arrays(dataclasses.replace(demo_bars, signature=sigs), BuildParams())
+    nb = len(sigs)
+    own = to_pattern(np.stack([to_bits(s) for s in sigs]))
+    sig, kind, src = arrays["signature"], arrays["node_kind"], arrays["node_source"]
+    assert sig.dtype == np.uint8
+    assert (sig[:nb] == own).all() and (sig[nb : 2 * nb] == own).all()  # mirrors keep the timing
+    blends = kind == 2
+    assert (sig[blends] == own[src[blends, 0]]).all()
+    # a shuffle dances beats 1-2 of bar a (slots 0-3) and beats 3-4 of bar b (slots 4-7)
+    low, high = np.uint8(0x0F), np.uint8(0xF0)
+    shuffles = kind == 3
+    a, b = src[shuffles].T
+    assert (sig[shuffles] == (own[a] & low) | (own[b] & high)).all()
+    assert sig[shuffles][0] != own[a0] and (a[0], b[0]) == (a0, b0)

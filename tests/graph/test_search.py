@@ -12,7 +12,8 @@ from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import _dp
 from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
-from dancegraph.graph.search import placed_motion, root_trajectory, search, structure_pairs
+from dancegraph.graph.problem import structure_pairs
+from dancegraph.graph.search import placed_motion, root_trajectory, search
 from dancegraph.render import render_path
 from dancegraph.spec import Spec
 
@@ -426,8 +427,13 @@ def tiled_graph(demo_graph):
 
 
 def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
-    from dancegraph.graph.search import _music_arrays, data_costs, edges_below, music_style
-    from dancegraph.rhythm.signatures import COMMON_DISTANCES
+    from dancegraph.graph.problem import (
+        _music_arrays,
+        data_costs,
+        edges_below,
+        music_style,
+        rhythm_costs,
+    )
 
     g = tiled_graph
     song = synthetic_analysis("ABCDE", bars_per_phrase=4)
@@ -436,7 +442,7 @@ def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
 
     # plain Viterbi over every node and edge, in float64
     music = _music_arrays(song)
-    data = data_costs(g, music_style(music, g), COMMON_DISTANCES[music["topk"]].min(axis=1), spec)
+    data = data_costs(g, music_style(music, g), rhythm_costs(music["topk"]), spec)
     indptr, indices, costs = edges_below(g, spec.transition_threshold)
     src = np.repeat(np.arange(g.n_nodes), np.diff(indptr))
     best = data[0].astype(np.float64)
@@ -464,3 +470,62 @@ def test_threads_do_not_change_the_result(tiled_graph):
     for a, b in zip(one.alternatives, many.alternatives, strict=True):
         assert np.array_equal(a.nodes, b.nodes)
         assert a.cost == b.cost
+
+
+def test_rhythm_term_picks_nodes_whose_beats_fall_on_the_music_s_accents(demo_graph):
+    from dancegraph.rhythm.signatures import COMMON_SIGNATURES, PATTERN_DISTANCES
+
+    # every bar's music signature is known (top-3 all the same); no other term counts
+    song = synthetic_analysis("ABCD", bars_per_phrase=4)
+    want = [COMMON_SIGNATURES.index(s) for s in ("00010001", "01010101", "00000101", "01110111")]
+    topk = np.repeat(np.array(want * 4)[:, None], 3, axis=1)
+    song = dataclasses.replace(song, signature_topk=topk)
+    rules = {"structure": {"repeat": False, "mirror": False}, "alternatives": 1}
+    weights = {"style": 0.0, "transition": 0.0}
+    pattern = np.asarray(demo_graph.signature)
+
+    def misfit(rhythm: float) -> float:
+        spec = _spec(weights={**weights, "rhythm": rhythm}, **rules)
+        nodes = search(demo_graph, song, spec).alternatives[0].index
+        return float(PATTERN_DISTANCES[topk[:, 0], pattern[nodes]].sum())
+
+    # with the term, most bars are danced by a node with exactly the music's accents (where an
+    # edge leads to one); without it, the accents fall anywhere
+    assert misfit(1.5) <= 0.25 * misfit(0.0)
+
+
+def test_compiling_a_spec_gives_the_dp_s_inputs_without_running_it(demo_graph, song):
+    from dancegraph.graph.problem import DENSE_LIMIT, WAYPOINT_WEIGHT, compile_spec
+
+    g = demo_graph
+    pin = g.node_ids[7]
+    spec = _spec(
+        include=[{"node": pin, "bars": [2, 2]}],
+        exclude=[{"node": "pop_90:*", "bars": [8, 11]}],
+        waypoints=[{"second": 5.0, "position": [0.2, 0.0], "tolerance": 0.5}],
+    )
+    p = compile_spec(g, song, spec)
+    n_bars = song.n_bars
+    assert p.data.shape == (n_bars, g.n_nodes) and p.sig_cost.shape == (n_bars, 256)
+    # AABA: the A occurrences repeat bar for bar; bars 0 and 2 of an occurrence
+    # share a meter id, so bar 2 mirrors bar 0 (the pin at bar 2 pins bar 0 to its mirror)
+    for a, b, par, rule in p.pairs:
+        assert p.var[a] == p.var[b] and (p.parity[a] ^ p.parity[b]) == par, rule
+    assert p.n_vars < n_bars and p.slots > 1  # ties: k-best histories
+    v = p.var[2]
+    want = g.node_index(pin) if p.parity[2] == 0 else g.mirror_of[g.node_index(pin)]
+    assert np.isfinite(p.unary[v]).sum() == 1 and np.isfinite(p.unary[v, want])
+    assert p.dense[v] and np.isfinite(p.unary[v]).sum() <= DENSE_LIMIT
+    # the exclude holds at the variables of bars 8-11 (phrase B, tied to no bar outside it)
+    pop = np.array([n.startswith("pop_90:") for n in g.node_ids])
+    for t in range(8, 12):
+        assert np.isinf(p.unary[p.var[t], pop]).all()
+    assert np.isfinite(p.unary[p.var[1], pop]).any()  # an A bar: not in its range
+    # the waypoint's bar and path sample, and the chain covers every variable once
+    bar_s = song.bars[0][1] - song.bars[0][0]
+    assert p.track.on and p.track.wp_bar.tolist() == [int(5.0 // bar_s)]
+    assert p.track.wp_w == WAYPOINT_WEIGHT
+    assert sorted(p.chain.var.tolist()) == list(range(p.n_vars))
+    assert (p.chain.var[p.step] == p.var).all()
+    assert p.report["pins"] == [{"field": "include[0]", "node": pin, "bar": 2}]
+    assert p.report["excluded_bars"] == 4 and p.report["variables"] == p.n_vars

@@ -65,7 +65,16 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     song = metrics["songs"][0]
     assert song["song"] == "song.wav" and set(song["rows"]) == set(ROWS)
     assert set(SCALARS) <= set(song["rows"]["ours"]["mean"])
+    # sync beside its chance rows: the demo takes hold still exactly on their own bars'
+    # accented slots, and the graph's dances keep their beats where the song's are
+    sync = metrics["sync"]
+    assert list(sync) == list(ROWS)
+    real, ours = sync["real"], sync["ours"]
+    assert real["cm_accuracy"]["value"] >= 0.9 and real["cm_accuracy"]["ratio_half_beat"] >= 1.5
+    assert ours["bas_bailando"]["gain_half_beat"] >= 0.15 and ours["phase_r"]["value"] >= 0.5
+    assert ours["phase_r"]["half_beat"] is None and ours["bas_fact"]["other_song"] is None  # 1 song
     html = (out / "report.html").read_text()
+    assert "Sync against chance" in html and "CM beat acc. (rhythm points" in html
     assert len(_images(html)) == 4  # beats, bars/nodes, per-bar costs, signature
     assert "<script" not in html and "http" not in html  # self-contained
     assert "Tempo-matched clip concatenation" in html

@@ -8,6 +8,7 @@ import pytest
 from dancegraph.graph import choreography
 from dancegraph.metrics import beats, diversity, kinetic, physical, smoothness, structure
 from dancegraph.motion.features import kinematic_beats
+from dancegraph.rhythm.motion import shiratori_beats
 from dancegraph.spec import Spec, Stage
 
 FPS = 60.0
@@ -16,7 +17,7 @@ BEAT_FRAMES = 30  # 120 BPM at 60 fps
 
 def pulse(n_frames: int = 600, n_joints: int = 4) -> np.ndarray:
     """``(F, J, 3)`` joints swinging along x with speed ∝ |sin(π i / 30)| between frames i and
-    i + 1: the speed dips to zero once per beat, at speed sample 30·k (reported at frame 30·k + 1)."""
+    i + 1: the displacement dips to zero once per beat, between frames 30·k and 30·k + 1."""
     i = np.arange(n_frames) - 0.5
     x = 0.3 * np.cos(np.pi * i / BEAT_FRAMES)
     pos = np.zeros((n_frames, n_joints, 3))
@@ -27,10 +28,11 @@ def pulse(n_frames: int = 600, n_joints: int = 4) -> np.ndarray:
 
 def test_beat_scores_on_beat_are_maximal_and_half_a_beat_off_is_low():
     pos = pulse()
-    # the published code reports a minimum of speed sample i (frames i → i+1) at frame i + 1
-    on = (np.arange(1, 20) * BEAT_FRAMES + 1) / FPS
-    off = on + 0.5 * BEAT_FRAMES / FPS
-    for variant in ("bailando", "fact"):
+    # the published codes index the displacement between frames i and i + 1 differently:
+    # Bailando at frame i, FACT (a zero first row) at frame i + 1
+    for variant, lag in (("bailando", 0), ("fact", 1)):
+        on = (np.arange(1, 20) * BEAT_FRAMES + lag) / FPS
+        off = on + 0.5 * BEAT_FRAMES / FPS
         mb = beats.motion_beats(pos, FPS, variant)
         assert np.allclose(np.diff(mb), BEAT_FRAMES / FPS)  # one minimum per beat
         assert beats.beat_align_score(on, mb, variant) == pytest.approx(1.0)
@@ -39,6 +41,40 @@ def test_beat_scores_on_beat_are_maximal_and_half_a_beat_off_is_low():
     music = (np.arange(1, 20) * BEAT_FRAMES) / FPS
     assert beats.beat_accuracy(music, kin) == 1.0
     assert beats.beat_accuracy(music + 0.25, kin) == 0.0
+
+
+def _published_bas(keypoints: np.ndarray, music_frames: np.ndarray, variant: str) -> float:
+    """The two published Beat Align Score procedures, step by step on frame indices at 60 fps
+    (Bailando's utils/beat_align_score.py, FACT's tools/calculate_beat_scores.py), written
+    independently of ``metrics.beats`` to check it."""
+    from scipy.ndimage import gaussian_filter
+    from scipy.signal import argrelextrema
+
+    if variant == "bailando":
+        step = np.sqrt(((keypoints[1:] - keypoints[:-1]) ** 2).sum(axis=2)).mean(axis=1)
+        dance = argrelextrema(gaussian_filter(step, 5), np.less)[0]
+        return float(np.mean([np.exp(-np.min((dance - m) ** 2) / 2 / 9) for m in music_frames]))
+    velocity = np.zeros_like(keypoints)
+    velocity[1:] = keypoints[1:] - keypoints[:-1]
+    envelope = np.linalg.norm(velocity, axis=2).sum(axis=1)
+    dance = argrelextrema(envelope, np.less, order=10)[0]
+    return float(np.mean([np.exp(-np.min((music_frames - k) ** 2) / 2 / 9) for k in dance]))
+
+
+def test_beat_align_scores_equal_the_published_procedures():
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        n = int(rng.integers(200, 700))
+        t = np.arange(n)[:, None, None]
+        keypoints = np.cumsum(rng.normal(size=(n, 24, 3)) * 0.01, axis=0) + 0.1 * np.sin(
+            2 * np.pi * t / rng.uniform(15, 40)
+        ) * rng.normal(size=(1, 24, 3))
+        music = np.sort(rng.choice(n, size=int(rng.integers(5, 40)), replace=False))
+        for variant in ("bailando", "fact"):
+            ours = beats.beat_align_score(
+                music / FPS, beats.motion_beats(keypoints, FPS, variant), variant
+            )
+            assert ours == pytest.approx(_published_bas(keypoints, music, variant), abs=1e-9)
 
 
 def test_beat_align_variants_average_over_different_sides():
@@ -50,6 +86,77 @@ def test_beat_align_variants_average_over_different_sides():
     assert beats.beat_align_score(music, [], "bailando") == 0.0
     with pytest.raises(ValueError):
         beats.beat_align_score(music, dance, "other")
+
+
+def _demo_dance(recipe_index: int):
+    """SMPL-like positions of one generated demo clip at 60 fps and its key-pose times (the
+    accented slots of its bars' signatures: where the body holds still, by construction)."""
+    from dancegraph.metrics.kinetic import smpl_positions
+    from dancegraph.motion.demo import DEMO_CLIPS, make_clip
+    from dancegraph.motion.fk import forward_kinematics
+    from dancegraph.rhythm.music import rhythm_points
+    from dancegraph.rhythm.signatures import COMMON_SIGNATURES
+
+    motion, bars, sigs = make_clip(DEMO_CLIPS[recipe_index], np.random.default_rng(recipe_index))
+    pos, world = forward_kinematics(motion)
+    keys = rhythm_points(np.array(bars), np.array([COMMON_SIGNATURES.index(s) for s in sigs]))
+    return smpl_positions(motion.skeleton, pos, world), motion.fps, np.array(bars), keys
+
+
+@pytest.mark.parametrize("recipe_index", [0, 2, 4])
+def test_shiratori_beats_find_the_demo_key_poses(recipe_index):
+    smpl, fps, _, keys = _demo_dance(recipe_index)
+    found = shiratori_beats(smpl, fps)
+    inside = beats.within(keys, 0.2, len(smpl) / fps - 0.2)  # a stop needs a move either side
+    assert beats.beat_accuracy(inside, found, 0.05) >= 0.9  # recall, within 3 frames
+    assert beats.beat_accuracy(found, keys, 0.05) >= 0.95  # precision
+
+
+def test_rhythm_points_are_the_active_slots_of_each_bar():
+    from dancegraph.rhythm.music import rhythm_points
+    from dancegraph.rhythm.signatures import COMMON_SIGNATURES
+
+    bar_beats = np.array([[0.0, 0.5, 1.0, 1.5, 2.0], [2.0, 2.6, 3.2, 3.8, 4.4]])
+    sigs = [COMMON_SIGNATURES.index("00010001"), COMMON_SIGNATURES.index("01000101")]
+    # slots 0 and 4 (beats 1 and 3), then slots 0, 2 and 6 (beats 1, 2 and 4) 0.6 s apart
+    assert rhythm_points(bar_beats, sigs) == pytest.approx([0.0, 1.0, 2.0, 2.6, 3.8])
+    with pytest.raises(ValueError):
+        rhythm_points(bar_beats, sigs[:1])
+
+
+def test_phase_concentration_and_half_beat_shift():
+    grid = np.arange(0.0, 20.0, 0.5)
+    r, phase = beats.phase_concentration(grid, grid[:-1] + 0.125)  # a quarter beat late
+    assert r == pytest.approx(1.0) and phase == pytest.approx(0.25)
+    r, _ = beats.phase_concentration(grid, np.concatenate([grid, grid + 0.25])[:-2])
+    assert r == pytest.approx(0.0, abs=0.03)  # on and off the beat alike: no concentration
+    assert beats.phase_concentration(grid[:1], grid) == (0.0, 0.0)
+    uneven = np.array([0.0, 0.4, 1.0, 1.6])
+    assert beats.half_beat_shift([0.1, 0.5, 2.0], uneven) == pytest.approx([0.3, 0.8, 2.3])
+
+
+def test_sync_scores_of_a_dance_on_its_key_poses_beat_every_chance_row():
+    smpl, fps, bars, keys = _demo_dance(0)  # accents on the beats (and a half beat or two)
+
+    grid = beats.SyncGrid(
+        beats=np.unique(bars.ravel()),
+        percussive_beats=np.unique(bars.ravel()),
+        rhythm_points=keys,
+        span=(float(bars[0, 0]), float(bars[-1, 4])),
+    )
+    dance = beats.DanceBeats.of(smpl, fps, kinematic_beats(smpl, fps))
+    span = grid.span
+    own = beats.sync_scores(dance, grid, span)
+    half = beats.sync_scores(dance, grid.half_beat(), span)
+    assert own["cm_accuracy"] >= 0.9 and own["cm_accuracy"] >= 1.5 * half["cm_accuracy"]
+    assert own["bas_bailando"] >= half["bas_bailando"] + 0.15
+    assert own["phase_r"] >= 0.5
+    # another song at another tempo: the dance's beats scatter over its beat phase
+    other = np.arange(0.0, span[1], 60.0 / 137.0)
+    far = beats.SyncGrid(other, other, other, (0.0, span[1]))
+    assert beats.sync_scores(dance, far, span)["phase_r"] < own["phase_r"] - 0.3
+    no_points = beats.SyncGrid(grid.beats, grid.percussive_beats, np.zeros(0), span)
+    assert beats.sync_scores(dance, no_points, span)["cm_accuracy"] is None
 
 
 def test_librosa_beats_find_a_click_track():
@@ -196,3 +303,29 @@ def test_diversity():
     assert diversity.feature_diversity(np.zeros((1, 3))) is None
     assert diversity.path_diversity([np.array([1, 2, 3, 4]), np.array([1, 2, 5, 6])]) == 0.5
     assert diversity.path_diversity([np.array([1, 2])]) is None
+
+
+def test_sync_table_puts_every_metric_beside_its_chance_rows():
+    from dancegraph.eval.harness import Dance, sync_metrics, sync_table
+
+    smpl, fps, bars, keys = _demo_dance(0)
+    beat_grid = np.unique(bars.ravel())
+    grid = beats.SyncGrid(beat_grid, beat_grid, keys, (float(bars[0, 0]), float(bars[-1, 4])))
+    other = np.arange(0.0, grid.span[1], 60.0 / 137.0)
+    far = beats.SyncGrid(other, other, other, (0.0, grid.span[1]))
+    dance = beats.DanceBeats.of(smpl, fps, kinematic_beats(smpl, fps))
+    m = sync_metrics(dance, grid.span, grid, far)
+    assert m["phase_r_half"] is None and m["cm_accuracy_other"] is not None
+    lone = sync_metrics(dance, grid.span, grid, None)
+    assert lone["bas_bailando_other"] is None and lone["bas_bailando"] == m["bas_bailando"]
+    blank = np.zeros((0, 72))
+    per_song = [
+        {"ours": [Dance(m, blank, blank[0:0], None, {}), Dance(lone, blank, blank, None, {})]}
+    ]
+    cell = sync_table(per_song, ["ours"])["ours"]["bas_bailando"]
+    assert cell["value"] == pytest.approx(m["bas_bailando"])
+    assert cell["gain_half_beat"] == pytest.approx(m["bas_bailando"] - m["bas_bailando_half"])
+    # the other-song row only from the dance that has one
+    assert cell["other_song"] == pytest.approx(m["bas_bailando_other"])
+    assert cell["ratio_other_song"] == pytest.approx(m["bas_bailando"] / m["bas_bailando_other"])
+    assert sync_table(per_song, ["ours"])["ours"]["phase_r"]["half_beat"] is None

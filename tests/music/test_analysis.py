@@ -100,6 +100,21 @@ def test_analyze_a_generated_song(analysed):
     assert labels[1:] in ("BCBC", "BCBCD") and len(set(labels[:3])) == 3
 
 
+def test_signatures_come_from_the_accent_curve(analysed):
+    # the rhythm signatures' onsets leave the hi-hats out (FrameFeatures.accent: below 4 kHz);
+    # on generated 4/4 songs that finds the true accent signature in the top 3 of 82 % of bars,
+    # the full-band onset in 72 % (docs/evaluation.md)
+    from dancegraph.music.decode import load_audio
+    from dancegraph.music.features import FEATURE_SR, frame_features
+    from dancegraph.rhythm.music import music_signatures
+
+    _, wav, a = analysed
+    ff = frame_features(load_audio(wav, sr=FEATURE_SR)[0], FEATURE_SR)
+    _, topk, _ = music_signatures(ff.accent, ff.frame_rate, a.bar_beats)
+    _, full_band, _ = music_signatures(ff.onset, ff.frame_rate, a.bar_beats)
+    assert np.array_equal(a.signature_topk, topk) and not np.array_equal(topk, full_band)
+
+
 def test_to_dict_from_dict_and_summary(analysed):
     _, _, a = analysed
     d = json.loads(json.dumps(a.to_dict()))

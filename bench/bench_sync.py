@@ -1,0 +1,143 @@
+"""Sync of the rendered dance to its music (issue 24): the seeds' metrics beside their chance rows.
+
+Usage: ``python bench/bench_sync.py [--generated N] [--no-cc] [--alternatives K] [--out DIR]``.
+
+The harness's Table-3 analog (``dancegraph.eval``: rows ``ours``, ``no_rhythm``,
+``random_walk``, every dance rendered and measured at 60 fps) on the cmu-salsa graph, imported
+and built here from the shared mocap, for two song sets: the CC recordings and N generated songs
+(``music.generator``, seeds 3000…); on the generated songs also the generated demo library,
+whose accents sit exactly on its bars' signatures (the exact-truth reference). Per set it prints
+the sync table (value, half-beat and other-song chance rows) and, per song, ``ours`` against
+issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15, CM
+beat accuracy >= 0.85 and >= 1.5 x its half-beat chance. ``metrics.json`` and ``report.html``
+of each run go to ``--out`` (default: a temporary folder, removed).
+``DANCEGRAPH_SHARED`` points at the shared datasets (default ../shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from dancegraph.eval import harness  # noqa: E402
+from dancegraph.graph import artifact  # noqa: E402
+from dancegraph.graph.build import build_graph  # noqa: E402
+from dancegraph.motion.dataset import import_dataset, load_dataset, load_manifest  # noqa: E402
+from dancegraph.motion.demo import write_demo_library  # noqa: E402
+from dancegraph.music.generator import generate_song, write_song  # noqa: E402
+from dancegraph.paths import shared_dir  # noqa: E402
+from dancegraph.spec import Spec  # noqa: E402
+from dancegraph.store import ObjectStore  # noqa: E402
+
+ROWS = ["ours", "no_rhythm", "random_walk"]
+METRICS = ("cm_accuracy", "beat_accuracy", "bas_bailando", "bas_fact", "phase_r")
+TARGET_R = 0.5
+TARGET_BAS_GAIN = 0.15
+TARGET_CM = 0.85
+TARGET_CM_RATIO = 1.5
+
+
+def _library(store: ObjectStore, name: str, folder: Path, manifest: dict) -> harness.Library:
+    import_dataset(folder, name, store, manifest)
+    dataset = load_dataset(store, name)
+    build_graph(dataset, store)
+    return harness.load_library(artifact.load_current(store, name), dataset)
+
+
+def _fmt(v) -> str:
+    return "   –  " if v is None else f"{v:6.3f}"
+
+
+def _print_sync(title: str, metrics: dict) -> None:
+    print(f"\n{title}: value / half-beat chance / other-song chance")
+    print("row          " + "  ".join(f"{m:<22}" for m in METRICS))
+    for row, entry in metrics["sync"].items():
+        cells = [
+            f"{_fmt(entry[m]['value'])}{_fmt(entry[m]['half_beat'])}{_fmt(entry[m]['other_song'])}"
+            for m in METRICS
+        ]
+        print(f"{row:<12} " + "  ".join(cells))
+
+
+def _targets(metrics: dict) -> int:
+    """Print ours' numbers per song against the targets; the number of songs that miss one."""
+    print(
+        f"per song, ours (mean of alternatives): R >= {TARGET_R}, BAS gain >= {TARGET_BAS_GAIN}, "
+        f"CM acc >= {TARGET_CM} and >= {TARGET_CM_RATIO} x half-beat chance"
+    )
+    missed = 0
+    for song in metrics["songs"]:
+        dances = song["rows"]["ours"]["dances"]
+
+        def mean(key: str, ds=dances) -> float:
+            vals = [d[key] for d in ds if d.get(key) is not None]
+            return sum(vals) / len(vals) if vals else float("nan")
+
+        r, cm, cm_half = mean("phase_r"), mean("cm_accuracy"), mean("cm_accuracy_half")
+        gain = mean("bas_bailando") - mean("bas_bailando_half")
+        ratio = cm / cm_half if cm_half > 0 else float("inf")
+        ok = [r >= TARGET_R, gain >= TARGET_BAS_GAIN, cm >= TARGET_CM, ratio >= TARGET_CM_RATIO]
+        missed += not all(ok)
+        marks = " ".join("ok" if o else "MISS" for o in ok)
+        print(
+            f"  {song['song'][:44]:<44} R {r:.3f}  BAS gain {gain:+.3f}  CM acc {cm:.3f} "
+            f"({ratio:.2f} x chance)  [{marks}]"
+        )
+    return missed
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--generated", type=int, default=4, help="generated songs (default 4)")
+    ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
+    ap.add_argument("--alternatives", type=int, default=3)
+    ap.add_argument("--out", default=None, help="folder for metrics.json / report.html")
+    args = ap.parse_args()
+    shared = shared_dir() / "datasets"
+    if not (shared / "mocap" / "cmu-salsa").is_dir():
+        print(f"shared mocap not found under {shared}: set DANCEGRAPH_SHARED")
+        return 1
+    spec = Spec(alternatives=args.alternatives)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        out = Path(args.out) if args.out else tmp / "out"
+        store = ObjectStore(tmp / "store")
+        salsa = _library(
+            store,
+            "cmu-salsa",
+            shared / "mocap" / "cmu-salsa",
+            load_manifest(ROOT / "datasets" / "manifests" / "cmu-salsa.yaml"),
+        )
+        sets: list[tuple[str, harness.Library, list[harness.Song]]] = []
+        if not args.no_cc:
+            cc = sorted((shared / "music" / "cc").glob("*.ogg"))
+            sets.append(("CC songs, cmu-salsa", salsa, [harness.load_song(p) for p in cc]))
+        if args.generated:
+            wavs = [
+                write_song(generate_song(3000 + i), tmp / "songs", f"generated-{3000 + i}")[0]
+                for i in range(args.generated)
+            ]
+            songs = [harness.load_song(p) for p in wavs]
+            sets.append(("generated songs, cmu-salsa", salsa, songs))
+            lib = write_demo_library(tmp / "demo")
+            demo = _library(store, "demo", lib, json.loads((lib / "manifest.json").read_text()))
+            sets.append(("generated songs, demo library", demo, songs))
+        missed = 0
+        for k, (title, lib, songs) in enumerate(sets):
+            metrics = harness.evaluate(songs, lib, spec, out / f"set{k}", rows=ROWS)
+            _print_sync(title, metrics)
+            missed += _targets(metrics)
+    print(f"\n{missed} song runs miss a target; {time.perf_counter() - t0:.0f} s wall")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
