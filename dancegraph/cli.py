@@ -88,16 +88,20 @@ def _add_dataset(sub) -> None:
     ds_sub = p.add_subparsers(dest="dataset_command", required=True)
 
     def _store(args):
-        from dancegraph.paths import store_dir
-        from dancegraph.store import ObjectStore
+        from dancegraph.paths import default_store, store_dir
+        from dancegraph.store import open_store
 
-        return ObjectStore(args.store or store_dir())
+        return open_store(args.store, store_dir()) if args.store else default_store()
 
     imp = ds_sub.add_parser("import", help="import a folder of BVH files as a dataset")
     imp.add_argument("dir", help="folder with the motion files (and optionally manifest.yaml)")
     imp.add_argument("--name", required=True, help="dataset name (letters, digits, . _ -)")
     imp.add_argument("--manifest", default=None, help="manifest file (YAML or JSON)")
-    imp.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    imp.add_argument(
+        "--store",
+        default=None,
+        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
+    )
     imp.add_argument(
         "--json", action="store_true", help="print the report as JSON (default: a table)"
     )
@@ -125,7 +129,11 @@ def _add_dataset(sub) -> None:
     imp.set_defaults(func=_import)
 
     ls = ds_sub.add_parser("list", help="list the stored datasets as JSON")
-    ls.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    ls.add_argument(
+        "--store",
+        default=None,
+        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
+    )
 
     def _list(args) -> int:
         from dancegraph.motion.dataset import list_datasets
@@ -159,7 +167,11 @@ def _add_dataset(sub) -> None:
     bld.add_argument(
         "--rhythm-model", default=None, help="learned rhythm model file (.dgm): node signatures"
     )
-    bld.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    bld.add_argument(
+        "--store",
+        default=None,
+        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
+    )
     bld.add_argument("--json", action="store_true", help="print the report as JSON")
 
     def _build(args) -> int:
@@ -353,19 +365,24 @@ def _add_synthesize(sub) -> None:
     p.add_argument(
         "--alternatives", type=int, default=None, help="number of alternatives (overrides the spec)"
     )
-    p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    p.add_argument(
+        "--store",
+        default=None,
+        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
+    )
 
     def run(args) -> None:
-        from dancegraph.paths import store_dir
+        from dancegraph.paths import default_store, store_dir
         from dancegraph.render import synthesize
-        from dancegraph.store import ObjectStore
+        from dancegraph.store import open_store
         from services.graphstore.client import LocalGraphStore, parse_spec
 
         spec = _read_spec(args.spec)
         if args.alternatives is not None:
             spec["alternatives"] = args.alternatives
         parsed = parse_spec(args.dataset, spec)
-        graph = LocalGraphStore(ObjectStore(args.store or store_dir())).graph(args.dataset)
+        store = open_store(args.store, store_dir()) if args.store else default_store()
+        graph = LocalGraphStore(store).graph(args.dataset)
         done = synthesize(args.audio, graph, parsed, args.out)
         timeline = done["timeline"]
         _print_json(
@@ -409,17 +426,21 @@ def _add_eval(sub) -> None:
         "--result", default=None, help="score an existing synthesize/job result folder instead"
     )
     p.add_argument("--audio-file", default=None, help="with --result: the song, for librosa beats")
-    p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    p.add_argument(
+        "--store",
+        default=None,
+        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
+    )
 
     def run(args) -> int:
         from dancegraph.errors import SpecError
         from dancegraph.eval.harness import evaluate, evaluate_result, load_library, load_song
         from dancegraph.motion.dataset import load_dataset
-        from dancegraph.paths import store_dir
-        from dancegraph.store import ObjectStore
+        from dancegraph.paths import default_store, store_dir
+        from dancegraph.store import open_store
         from services.graphstore.client import LocalGraphStore, parse_spec
 
-        store = ObjectStore(args.store or store_dir())
+        store = open_store(args.store, store_dir()) if args.store else default_store()
         if args.result:
             from dancegraph.preview import read_timeline
 

@@ -3,7 +3,9 @@
 One pydantic model shared by the API (request validation and ``openapi.yaml``), the CLI
 (``--spec FILE``) and the graph search. Every field has a default, so ``{}`` plus a dataset is a
 valid spec; unknown fields are rejected (``extra="forbid"``) so typos never pass silently.
-Times are seconds from the start of the song; bar indices count from 0.
+Types are strict (``true`` is not 1, ``"3"`` is not 3; an integer is a valid float), numbers
+finite, and every string bounded. Times are seconds from the start of the song; bar indices
+count from 0.
 """
 
 from __future__ import annotations
@@ -11,13 +13,25 @@ from __future__ import annotations
 import re
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, HttpUrl, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    HttpUrl,
+    UrlConstraints,
+    field_validator,
+    model_validator,
+)
 
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
 
+MAX_ID_CHARS = 100  # node ids, take ids, tags: the longest real one is far shorter
+MAX_URL_CHARS = 2000
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 class Weights(_Strict):
@@ -61,7 +75,11 @@ class _Ranged(_Strict):
 class Include(_Ranged):
     """Pin a node (``TAKE:BAR``, optionally ``~AUG``) at the given bars."""
 
-    node: str = Field(..., description="node id, e.g. '60_03:12' or '60_03:12~m' (mirrored)")
+    node: str = Field(
+        ...,
+        max_length=MAX_ID_CHARS,
+        description="node id, e.g. '60_03:12' or '60_03:12~m' (mirrored)",
+    )
 
     @field_validator("node")
     @classmethod
@@ -74,9 +92,13 @@ class Include(_Ranged):
 class Exclude(_Ranged):
     """Never use the matching nodes (optionally only inside a bar or time range)."""
 
-    node: str | None = Field(None, description="node id or take wildcard, e.g. '61_07:*'")
+    node: str | None = Field(
+        None, max_length=MAX_ID_CHARS, description="node id or take wildcard, e.g. '61_07:*'"
+    )
     tag: str | None = Field(
-        None, description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'"
+        None,
+        max_length=MAX_ID_CHARS,
+        description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'",
     )
 
     @model_validator(mode="after")
@@ -113,7 +135,9 @@ class SignatureTarget(_Strict):
     """Follow a motif signature: the dataset's own, or a reference take's."""
 
     target: str = Field(
-        "dataset", description="'dataset' or a take id of the dataset, e.g. '60_03'"
+        "dataset",
+        max_length=MAX_ID_CHARS,
+        description="'dataset' or a take id of the dataset, e.g. '60_03'",
     )
     weight: float = Field(0.5, ge=0)
 
@@ -149,10 +173,14 @@ class Spec(_Strict):
     signature: SignatureTarget | None = None
     motifs: list[MotifPin] = Field(default_factory=list, max_length=1000)
     recreate: str | None = Field(
-        None, description="take id whose motif sequence to re-create on this music"
+        None,
+        max_length=MAX_ID_CHARS,
+        description="take id whose motif sequence to re-create on this music",
     )
     output: Output = Field(default_factory=Output)
-    callback_url: HttpUrl | None = None
+    callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(
+        None, description="POSTed when the job ends; must name a public address"
+    )
 
     @model_validator(mode="after")
     def _waypoints_on_stage(self):

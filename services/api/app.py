@@ -13,14 +13,14 @@ from collections.abc import Callable
 from contextlib import asynccontextmanager
 from functools import cached_property
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 
 from dancegraph import __version__
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 from services.api import metrics, problems
 from services.api.routers import batches, datasets, health, jobs, preview
-from services.config import Settings, get_settings
+from services.config import Settings, get_settings, object_store
 from services.preview_server import static_router
 
 log = logging.getLogger("dancegraph.api")
@@ -72,7 +72,7 @@ class AppContext:
 
     @cached_property
     def store(self) -> ObjectStore:
-        return ObjectStore(self.settings.store_root)
+        return object_store(self.settings)
 
     def graphstore(self):
         """The graph store client per ``Settings.graphstore_url``; None when none is available."""
@@ -137,15 +137,7 @@ def create_app(
         app.include_router(module.router)
     app.include_router(static_router)
 
-    @app.middleware("http")
-    async def _observe(request: Request, call_next):
-        start = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        template = getattr(route, "path", "unmatched")
-        metrics.HTTP_REQUESTS.labels(request.method, template, str(response.status_code)).inc()
-        metrics.HTTP_LATENCY.labels(request.method, template).observe(time.perf_counter() - start)
-        return response
+    app.add_middleware(ObserveMiddleware)
 
     def openapi():
         if app.openapi_schema is None:
@@ -176,6 +168,44 @@ def create_app(
 
     app.openapi = openapi
     return app
+
+
+class ObserveMiddleware:
+    """Request metrics, and the last word on an unexpected error (a pure ASGI middleware).
+
+    An error that escapes the app is answered with the 500 problem here and *not* raised on:
+    Starlette's outermost error middleware would send the same 500 and then re-raise, and
+    uvicorn closes a connection whose request raised, so the client's next request on that
+    keep-alive connection would find it reset.
+    """
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        state = {"status": 500, "started": False}
+
+        async def send_wrapper(message):
+            if message["type"] == "http.response.start":
+                state["status"], state["started"] = message["status"], True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        except Exception:
+            log.exception("unhandled error on %s %s", scope.get("method"), scope.get("path"))
+            if state["started"]:
+                raise  # half a response is out: only closing the connection can end it
+            await problems.internal_error_response(scope.get("path"))(scope, receive, send)
+        finally:
+            template = getattr(scope.get("route"), "path", "unmatched")
+            method = scope.get("method", "")
+            metrics.HTTP_REQUESTS.labels(method, template, str(state["status"])).inc()
+            metrics.HTTP_LATENCY.labels(method, template).observe(time.perf_counter() - start)
 
 
 def _problem_validation_responses(schema: dict) -> None:

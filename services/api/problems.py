@@ -14,6 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field, ValidationError
+from sqlalchemy import exc as sa_exc
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from dancegraph.errors import DanceGraphError
@@ -181,9 +182,36 @@ def install(app: FastAPI) -> None:
             headers=getattr(exc, "headers", None),
         )
 
+    @app.exception_handler(sa_exc.TimeoutError)
+    async def _pool_busy(request: Request, exc: sa_exc.TimeoutError):
+        log.warning("database pool exhausted on %s %s", request.method, request.url.path)
+        return problem_response(
+            503,
+            "database_busy",
+            "the service is busy; try again shortly",
+            instance=request.url.path,
+            headers={"Retry-After": "2"},
+        )
+
+    @app.exception_handler(sa_exc.OperationalError)
+    @app.exception_handler(sa_exc.InterfaceError)
+    async def _db_down(request: Request, exc: sa_exc.DBAPIError):
+        # the driver's text names the server's host and port: it goes to the log only
+        log.error("database unavailable on %s %s: %s", request.method, request.url.path, exc)
+        return problem_response(
+            503,
+            "database_unavailable",
+            "the database is not reachable; try again later",
+            instance=request.url.path,
+            headers={"Retry-After": "5"},
+        )
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(
-            500, "internal_error", "internal server error", instance=request.url.path
-        )
+        return internal_error_response(request.url.path)
+
+
+def internal_error_response(instance: str | None = None) -> JSONResponse:
+    """The 500 of an unexpected error: a fixed text, never the exception's own words."""
+    return problem_response(500, "internal_error", "internal server error", instance=instance)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import tempfile
 from collections.abc import AsyncIterator
@@ -82,15 +83,14 @@ class CheckedAudio:
     def store(self, store: ObjectStore) -> StoredAudio:
         """Move the checked file to its content address (``blob_key(sha256)``).
 
-        The file was hashed while it streamed in and already lies in the store's ``tmp/``, so it
-        is renamed into place (atomic, no second read); ``put_stream`` is the fallback for a file
-        whose hash is not known.
+        The file was hashed while it streamed in and already lies in the store's scratch, so it
+        is moved into place (a rename on the filesystem store, a multipart upload for a large
+        file on S3; no second hashing read); ``put_stream`` is the fallback for a file whose
+        hash is not known.
         """
-        if self.sha256 and self.path.parent == store.root / "tmp":
+        if self.sha256 and self.path.parent == store.scratch:
             key = blob_key(self.sha256)
-            target = store.path(key)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(self.path, target)  # same content at the same key: replacing is harmless
+            store.move_in(key, self.path)
             size = self.size
         else:
             with open(self.path, "rb") as fh:
@@ -137,7 +137,7 @@ async def read_multipart(
     return await read_form(
         _limited(request.stream(), limit),
         ctype,
-        store.root / "tmp",
+        store.scratch,
         max_file_bytes=settings.max_upload_bytes,
         max_files=max_audio + 1,  # the spec may come as a file part too
         too_many_code="batch_too_large" if max_audio > 1 else "audio_multiple",
@@ -162,12 +162,29 @@ def parse_spec(form: Form, settings: Settings) -> Spec:
     return validate_spec(raw)
 
 
+MAX_SPEC_DEPTH = 32  # a spec nests 4 deep; anything deeper is an attack or a mistake
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:40]} is out of range")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def validate_spec(raw: str | dict | None) -> Spec:
     """A spec given as JSON text (None or blank: ``{}``) or as a decoded object, validated.
 
     The one spec check of the service: the API and the ``dancegraph.submit`` task both use it,
     so they refuse the same specs with the same codes (``spec_malformed``, ``spec_invalid``,
-    ``spec_unknown_field``) and field paths (``spec.weights.rhythm``).
+    ``spec_unknown_field``) and field paths (``spec.weights.rhythm``). Before the model sees it
+    the value must be storable as PostgreSQL JSON: finite numbers only (``NaN``, ``Infinity``,
+    ``1e309``: ``spec_malformed``), text without NUL or lone surrogates (``spec_invalid``),
+    nesting at most ``MAX_SPEC_DEPTH`` deep (``spec_malformed``).
     """
     if isinstance(raw, dict):
         data: object = raw
@@ -175,7 +192,7 @@ def validate_spec(raw: str | dict | None) -> Spec:
         data = {}
     else:
         try:
-            data = json.loads(raw)
+            data = json.loads(raw, parse_float=_finite, parse_constant=_no_constant)
         except json.JSONDecodeError as exc:
             raise ApiError(
                 422,
@@ -183,13 +200,18 @@ def validate_spec(raw: str | dict | None) -> Spec:
                 f"spec is not valid JSON: {exc.msg} at char {exc.pos}",
                 field="spec",
             ) from exc
+        except RecursionError as exc:
+            raise ApiError(
+                422,
+                "spec_malformed",
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                field="spec",
+            ) from exc
+        except ValueError as exc:  # a non-finite number, an integer with too many digits
+            raise ApiError(422, "spec_malformed", f"spec: {exc}", field="spec") from exc
     if not isinstance(data, dict):
         raise ApiError(422, "spec_malformed", "spec must be a JSON object", field="spec")
-    bad = _nul_path(data, "spec")
-    if bad is not None:
-        raise ApiError(
-            422, "spec_invalid", f"{bad}: text may not contain NUL characters", field=bad
-        )
+    check_json_value(data)
     try:
         return Spec.model_validate(data)
     except ValidationError as exc:
@@ -205,23 +227,43 @@ def validate_spec(raw: str | dict | None) -> Spec:
         raise err from exc
 
 
-def _nul_path(value: object, path: str) -> str | None:
-    """The first place in a JSON value holding a NUL character (PostgreSQL cannot store one)."""
-    if isinstance(value, str):
-        return path if "\x00" in value else None
-    if isinstance(value, dict):
-        for key, item in value.items():
-            if "\x00" in key:
-                return path
-            found = _nul_path(item, f"{path}.{key}")
-            if found is not None:
-                return found
-    if isinstance(value, list):
-        for i, item in enumerate(value):
-            found = _nul_path(item, f"{path}[{i}]")
-            if found is not None:
-                return found
+def _bad_text(text: str) -> str | None:
+    if "\x00" in text:
+        return "text may not contain NUL characters"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "text may not contain lone UTF-16 surrogates"
     return None
+
+
+def check_json_value(data: object) -> None:
+    """Walk a decoded JSON value without recursion; raise the first problem PostgreSQL's JSON
+    type (or the depth limit) would have with it."""
+    stack: list[tuple[object, str, int]] = [(data, "spec", 1)]
+    while stack:
+        value, path, depth = stack.pop()
+        if depth > MAX_SPEC_DEPTH:
+            raise ApiError(
+                422,
+                "spec_malformed",
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                field="spec",
+            )
+        if isinstance(value, str):
+            why = _bad_text(value)
+            if why:
+                raise ApiError(422, "spec_invalid", f"{path}: {why}", field=path)
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise ApiError(422, "spec_malformed", f"{path}: numbers must be finite", field=path)
+        elif isinstance(value, dict):
+            for key, item in value.items():
+                why = _bad_text(str(key))
+                if why:
+                    raise ApiError(422, "spec_invalid", f"{path}: key {why}", field=path)
+                stack.append((item, f"{path}.{key}", depth + 1))
+        elif isinstance(value, list):
+            stack.extend((item, f"{path}[{i}]", depth + 1) for i, item in enumerate(value))
 
 
 def safe_filename(name: str | None) -> str:
@@ -262,9 +304,8 @@ def check_audio(
 def _copy_upload(
     upload: UploadFile, settings: Settings, store: ObjectStore, field: str
 ) -> FilePart:
-    tmp_dir = store.root / "tmp"
-    tmp_dir.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=tmp_dir, prefix=".upload-")
+    store.scratch.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=store.scratch, prefix=".upload-")
     part = FilePart(field, upload.filename or "audio", Path(tmp))
     try:
         digest = hashlib.sha256()

@@ -116,7 +116,7 @@ class LocalGraphStore(GraphStoreClient):
             cached = self._graphs.get(name)
             if cached is not None and cached.version == version:
                 return cached
-        loaded = artifact.load_graph(self.store.path(artifact.graph_key(name, version)))
+        loaded = artifact.load_graph(artifact.graph_folder(self.store, name, version))
         load_graph_models(loaded)  # a bad model file fails here, not in a job
         with self._lock:
             self._graphs[name] = loaded
@@ -129,8 +129,7 @@ class LocalGraphStore(GraphStoreClient):
         if cached is not None and cached.version == version:
             return cached
         try:
-            key = artifact.graph_key(name, version)
-            loaded = artifact.load_graph(self.store.path(key))
+            loaded = artifact.load_graph(artifact.graph_folder(self.store, name, version))
         except (ValueError, NotFoundError) as exc:
             raise NotFoundError(
                 f"dataset {name!r} has no graph version {version!r}",

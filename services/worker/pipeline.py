@@ -8,10 +8,12 @@ Each stage is idempotent and leaves nothing half-written:
   (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
   graph store (``services.graphstore.client``: in-process in the embedded
   default, over HTTP in production); its answer is kept with the rendered files.
-- render: writes into a private temporary folder ``<store>/tmp/job-<id>-<random>/`` and renames
-  it to ``jobs/<job_id>/`` in one step; ``jobs/<job_id>/timeline.json`` existing means the render
-  is complete, so a re-run skips it.
-- FBX: each ``alternatives/<k>.fbx`` is written to a ``.tmp-`` sibling and renamed into place.
+- render: writes into a private scratch folder ``job-<id>-<random>/`` and publishes it at
+  ``jobs/<job_id>/`` (``ObjectStore.publish``: the files under a fresh version prefix, then
+  ``jobs/<job_id>/manifest.json`` created last and only once); a published manifest means the
+  render is complete, so a re-run skips it, and readers (the API) see only what it names.
+- FBX: each ``alternatives/<k>.fbx`` is converted from a local copy of its BVH and added to the
+  published result (``ObjectStore.publish_more``), file by file, so a restart skips done ones.
 - finalize: the job row becomes ``succeeded`` with the alternatives and their costs (a
   conditional update: a cancelled or already-finished job is never overwritten).
 
@@ -22,18 +24,16 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import uuid
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
-from dancegraph.errors import DanceGraphError
+from dancegraph.errors import AudioError, DanceGraphError
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 from services import jobs
 from services.config import Settings, get_settings
+from services.config import object_store as settings_store
 from services.db import session_scope
 from services.models import SUCCEEDED
 from services.worker import state
@@ -53,13 +53,8 @@ TIMELINE = "timeline.json"
 SEARCH_FILE = "search.json"
 
 
-@lru_cache(maxsize=4)
-def _store(root: str) -> ObjectStore:
-    return ObjectStore(root)
-
-
 def object_store(settings: Settings | None = None) -> ObjectStore:
-    return _store((settings or get_settings()).store_root)
+    return settings_store(settings or get_settings())
 
 
 def analysis_key(audio_sha256: str) -> str:
@@ -70,14 +65,27 @@ def analysis_key(audio_sha256: str) -> str:
 # --- stages ---------------------------------------------------------------------------------
 
 
-def analyze(store: ObjectStore, audio_key: str, audio_sha256: str) -> dict:
-    """The song's analysis (``MusicAnalysis.to_dict()``), computed once per sha256 and cached."""
+def analyze(
+    store: ObjectStore, audio_key: str, audio_sha256: str, filename: str | None = None
+) -> dict:
+    """The song's analysis (``MusicAnalysis.to_dict()``), computed once per sha256 and cached.
+
+    An audio error names ``filename`` (the name the client uploaded), not the stored blob.
+    """
     key = analysis_key(audio_sha256)
     if store.exists(key):
         return json.loads(store.get_bytes(key))
     from dancegraph.music.analysis import analyze as analyze_music
 
-    analysis = analyze_music(str(store.path(audio_key)))
+    path = store.local_path(audio_key)
+    try:
+        analysis = analyze_music(str(path))
+    except AudioError as exc:
+        if filename:
+            exc.message = exc.message.replace(path.name, filename)
+            exc.args = (exc.message,)
+            exc.field = "audio"
+        raise
     data = analysis.to_dict()
     store.put_bytes(key, json.dumps(data).encode("utf-8"))
     return data
@@ -104,7 +112,7 @@ def with_learned_terms(store: ObjectStore, audio_key: str, analysis: dict, datas
     except DanceGraphError:
         return analysis  # no such graph: the search stage names the problem
     parsed = MusicAnalysis.from_dict(analysis)
-    added = add_music_terms(parsed, graph, str(store.path(audio_key)))
+    added = add_music_terms(parsed, graph, str(store.local_path(audio_key)))
     return analysis if added is parsed else added.to_dict()
 
 
@@ -116,15 +124,15 @@ def search(settings: Settings, store: ObjectStore, spec: dict, analysis: dict) -
 
 def graphstore_client(settings: Settings):
     """LocalGraphStore (in-process) when ``graphstore_url`` is 'local', else HttpGraphStore."""
-    return _graphstore_client(settings.graphstore_url, settings.store_root)
+    return _graphstore_client(settings.graphstore_url, object_store(settings))
 
 
 @lru_cache(maxsize=4)
-def _graphstore_client(url: str, store_root: str):
+def _graphstore_client(url: str, store: ObjectStore):
     from services.graphstore.client import HttpGraphStore, LocalGraphStore
 
     if url == "local":
-        return LocalGraphStore(_store(store_root))
+        return LocalGraphStore(store)
     return HttpGraphStore(url)
 
 
@@ -133,26 +141,25 @@ def load_graph(store: ObjectStore, name: str, version: str | None = None):
     per process and version; render uses the version the search answered from."""
     from dancegraph.graph.artifact import current_version
 
-    return _load_graph(str(store.root), name, version or current_version(store, name))
+    return _load_graph(store, name, version or current_version(store, name))
 
 
 @lru_cache(maxsize=8)
-def _load_graph(store_root: str, name: str, version: str):
-    from dancegraph.graph.artifact import graph_key
+def _load_graph(store: ObjectStore, name: str, version: str):
+    from dancegraph.graph.artifact import graph_folder
     from dancegraph.graph.artifact import load_graph as load_artifact
 
-    return load_artifact(_store(store_root).path(graph_key(name, version)))
+    return load_artifact(graph_folder(store, name, version))
 
 
 def render(
     settings: Settings, store: ObjectStore, job_id: str, spec: dict, analysis: dict, found: dict
 ) -> list[str]:
-    """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
+    """Render BVH + timeline and publish them at ``jobs/<job_id>/``; returns the file names.
 
     FBX is not written here: it is the ``fbx`` queue's work (a warm Blender per worker).
     """
-    final = store.path(jobs.result_key(job_id))
-    if (final / TIMELINE).is_file():
+    if store.published(jobs.result_key(job_id)) is not None:
         return list_result_files(store, job_id)
     from dancegraph.music.analysis import MusicAnalysis
     from dancegraph.render import render as render_motion
@@ -162,8 +169,7 @@ def render(
         update={"output": bvh_spec.output.model_copy(update={"formats": ["bvh"]})}
     )
     graph = load_graph(store, bvh_spec.dataset, (found.get("graph") or {}).get("version"))
-    tmp = store.root / "tmp" / f"job-{job_id}-{uuid.uuid4().hex}"
-    tmp.mkdir(parents=True)
+    tmp = store.temp_dir(f"job-{job_id}")
     try:
         render_motion(
             graph,
@@ -173,65 +179,35 @@ def render(
             tmp,
         )
         (tmp / SEARCH_FILE).write_text(json.dumps(found))
-        publish_folder(tmp, final, marker=TIMELINE)
+        # False: another worker published first; its complete result stands
+        store.publish(jobs.result_key(job_id), tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return list_result_files(store, job_id)
 
 
-def publish_folder(tmp: Path, final: Path, *, marker: str) -> None:
-    """Move a finished folder into place so readers see all of it or none of it.
-
-    One ``rename`` when ``final`` does not exist yet; otherwise entry by entry with ``marker``
-    (the file whose presence means "complete") moved last. When ``final`` already holds the
-    marker, another worker finished first and ``tmp`` is left for the caller to discard.
-    """
-    final.parent.mkdir(parents=True, exist_ok=True)
-    if (final / marker).exists():
-        return
-    try:
-        os.rename(tmp, final)
-        return
-    except OSError:
-        if not final.is_dir():
-            raise
-    entries = sorted(tmp.iterdir(), key=lambda p: p.name == marker)
-    for entry in entries:
-        target = final / entry.name
-        if entry.is_dir() and target.is_dir():
-            for child in entry.iterdir():
-                os.replace(child, target / child.name)
-        else:
-            if target.is_dir():
-                shutil.rmtree(target)
-            os.replace(entry, target)
-
-
 def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
-    """Result files of a job, relative to ``jobs/<job_id>/`` (temporary files excluded)."""
-    prefix = jobs.result_key(job_id)
-    return [key[len(prefix) + 1 :] for key in store.list(prefix)]
-
-
-def bvh_files(store: ObjectStore, job_id: str) -> list[Path]:
-    folder = store.path(jobs.result_key(job_id, "alternatives"))
-    return sorted(folder.glob("*.bvh"), key=lambda p: p.name)
+    """Names of a job's published result files, relative to ``jobs/<job_id>/``."""
+    return sorted(jobs.result_files(store, job_id))
 
 
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None) -> list[str]:
-    """Write ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there)."""
+    """Add ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there)."""
     from services.worker import fbx_export
 
-    for i, bvh in enumerate(bvh_files(store, job_id)):
-        fbx = bvh.with_suffix(".fbx")
-        if fbx.exists():
+    prefix = jobs.result_key(job_id)
+    for i, name in enumerate(jobs.bvh_files(store, job_id)):
+        files = jobs.result_files(store, job_id)
+        fbx_name = name[: -len(".bvh")] + ".fbx"
+        if fbx_name in files:
             continue
-        tmp = bvh.with_name(f".tmp-{uuid.uuid4().hex}-{fbx.name}")
+        tmp = store.temp_dir(f"fbx-{job_id}")
         try:
-            fbx_export.export(bvh, tmp, fps=fps)
-            os.replace(tmp, fbx)
+            out = tmp / fbx_name.rsplit("/", 1)[1]
+            fbx_export.export(store.local_path(files[name]), out, fps=fps)
+            store.publish_more(prefix, {fbx_name: out})
         finally:
-            tmp.unlink(missing_ok=True)
+            shutil.rmtree(tmp, ignore_errors=True)
         if on_file is not None:
             on_file(i)
     return list_result_files(store, job_id)
@@ -243,9 +219,10 @@ def wants_fbx(spec: dict) -> bool:
 
 def finalize(store: ObjectStore, job_id: str) -> bool:
     """Mark the job succeeded with its alternatives, costs and files; False if already final."""
-    found = json.loads(store.get_bytes(jobs.result_key(job_id, SEARCH_FILE)))
+    files = jobs.result_files(store, job_id)
+    found = json.loads(store.get_bytes(files[SEARCH_FILE]))
     result = dict(found)
-    result["files"] = [f for f in list_result_files(store, job_id) if f != SEARCH_FILE]
+    result["files"] = sorted(f for f in files if f != SEARCH_FILE)
     with session_scope() as session:
         ok = jobs.set_status(
             session, job_id, SUCCEEDED, stage="done", progress=100.0, result=result
@@ -280,7 +257,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
-        analysis = analyze(store, job.audio_key, job.audio_sha256)
+        analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename)
         beat.check()
         with session_scope() as session:
             _set_summary(session, job_id, analysis)
@@ -292,8 +269,9 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         state.progress(job_id, "render", STAGES["render"])
         files = render(settings, store, job_id, job.spec, analysis, found)
         beat.check()
+        done = jobs.result_files(store, job_id)
         if wants_fbx(job.spec) and not all(
-            p.with_suffix(".fbx").exists() for p in bvh_files(store, job_id)
+            n[: -len(".bvh")] + ".fbx" in done for n in jobs.bvh_files(store, job_id)
         ):
             state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
             return RunOutcome("fbx_queued", files)
@@ -312,7 +290,7 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "fbx", STAGES["fbx"])
-        n = max(1, len(bvh_files(store, job_id)))
+        n = max(1, len(jobs.bvh_files(store, job_id)))
         span = STAGES["finalize"] - STAGES["fbx"]
 
         def on_file(i: int) -> None:

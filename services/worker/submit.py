@@ -13,12 +13,10 @@ becomes a ``failed`` job with the check's error code (``spec_invalid``, ``unknow
 
 from __future__ import annotations
 
-import json
 import logging
 import uuid
 from pathlib import Path
 
-from pydantic import ValidationError
 from sqlalchemy import select
 from starlette.datastructures import UploadFile
 
@@ -48,27 +46,12 @@ def _tenant_id(session, tenant: str) -> str:
 
 
 def _spec(spec: object) -> Spec:
-    from services.api.problems import spec_problem_code, validation_errors
+    """The API's own spec check (``services.api.uploads.validate_spec``): same codes, fields."""
+    from services.api.uploads import validate_spec
 
-    if isinstance(spec, str):
-        try:
-            spec = json.loads(spec)
-        except json.JSONDecodeError as exc:
-            raise SubmitError(
-                f"spec is not valid JSON: {exc.msg}", code="spec_malformed", field="spec"
-            ) from exc
-    if not isinstance(spec, dict):
+    if not isinstance(spec, str | dict):
         raise SubmitError("spec must be a JSON object", code="spec_malformed", field="spec")
-    try:
-        return Spec.model_validate(spec)
-    except ValidationError as exc:
-        errors = validation_errors(exc, prefix="spec")
-        first = errors[0]
-        raise SubmitError(
-            f"{first['field']}: {first['message']}",
-            code=spec_problem_code(errors),
-            field=first["field"],
-        ) from exc
+    return validate_spec(spec)
 
 
 def _audio_path(settings: Settings, audio: str) -> Path:
@@ -81,16 +64,19 @@ def _audio_path(settings: Settings, audio: str) -> Path:
         )
     if Path(audio).is_absolute():
         path = Path(audio)
-    else:
-        try:
-            path = pipeline.object_store(settings).path(check_key(audio))
-        except InvalidKeyError as exc:
-            raise SubmitError(
-                f"invalid object key {audio!r}", code="audio_missing", field="audio"
-            ) from exc
-    if not path.is_file():
-        raise SubmitError(f"no audio file at {audio!r}", code="audio_missing", field="audio")
-    return path
+        if not path.is_file():
+            raise SubmitError(f"no audio file at {audio!r}", code="audio_missing", field="audio")
+        return path
+    try:
+        return pipeline.object_store(settings).local_path(check_key(audio))
+    except InvalidKeyError as exc:
+        raise SubmitError(
+            f"invalid object key {audio!r}", code="audio_missing", field="audio"
+        ) from exc
+    except FileNotFoundError:
+        raise SubmitError(
+            f"no audio file at {audio!r}", code="audio_missing", field="audio"
+        ) from None
 
 
 def submit(
@@ -110,7 +96,7 @@ def submit(
     the id to give the job (default: a new UUID); ``idempotency_key``: as the API header — a
     second submission with the same key returns the first job and creates nothing.
     """
-    from services.api.submit import check_dataset
+    from services.api.submit import check_callback, check_dataset
     from services.api.uploads import check_audio
 
     settings = settings or get_settings()
@@ -125,6 +111,7 @@ def submit(
             return existing.id  # a redelivered submit: the job exists already
     try:
         parsed = _spec(spec)
+        check_callback(settings, parsed)
         check_dataset(settings, parsed, pipeline.graphstore_client(settings))
         path = _audio_path(settings, audio)
         with open(path, "rb") as fh:
@@ -163,6 +150,20 @@ def submit(
     return job_id
 
 
+def _storable(spec: object) -> dict:
+    """The refused spec as the failed row keeps it: itself when PostgreSQL's JSON type can hold
+    it, else an escaped excerpt of its text (no NUL, surrogate or non-finite number)."""
+    from services.api.uploads import check_json_value
+
+    if isinstance(spec, dict):
+        try:
+            check_json_value(spec)
+            return spec
+        except DanceGraphError:
+            pass
+    return {"raw": ascii(spec)[:1000]}
+
+
 def _record_refusal(
     job_id: str, tenant_id: str, spec: object, exc: DanceGraphError, key: str | None
 ) -> None:
@@ -171,7 +172,7 @@ def _record_refusal(
         job, created = jobs.create_job(
             session,
             tenant_id=tenant_id,
-            spec=spec if isinstance(spec, dict) else {"raw": str(spec)[:1000]},
+            spec=_storable(spec),
             audio_key="rejected",
             audio_sha256="",
             idempotency_key=key,

@@ -32,6 +32,7 @@ DATASET = "demo"
 JOB_TIMEOUT_S = 10.0  # the stuck timeout in these tests: the reaper acts within seconds
 FINAL = {"succeeded", "failed", "cancelled"}
 VENV_BIN = Path(sys.executable).parent
+WEBHOOK_SECRET = "worker-test-webhook-secret-" + "w" * 32
 
 
 def port_open(host: str, port: int) -> bool:
@@ -152,9 +153,9 @@ def build_demo_store(root: Path) -> Path:
     from dancegraph.graph.build import build_graph
     from dancegraph.motion.dataset import import_dataset, load_dataset
     from dancegraph.motion.demo import write_demo_library
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
 
-    store = ObjectStore(root)
+    store = FileStore(root)
     src = write_demo_library(root.parent / "demo-src", seed=0)
     import_dataset(src, DATASET, store)  # reads the library's own manifest.json
     build_graph(load_dataset(store, DATASET), store)
@@ -389,7 +390,9 @@ def make_cluster(home: Path, database_url: str, broker_url: str, store_root: Pat
             "DANCEGRAPH_GRAPHSTORE_URL": "local",
             "DANCEGRAPH_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S),
             "DANCEGRAPH_WEBHOOK_BACKOFF_S": "0.5",
-            "DANCEGRAPH_WEBHOOK_SECRET": "worker-test-secret",
+            "DANCEGRAPH_WEBHOOK_SECRET": WEBHOOK_SECRET,
+            "DANCEGRAPH_PREVIEW_SECRET": "worker-test-preview-secret-" + "p" * 32,
+            "DANCEGRAPH_WEBHOOK_ALLOW_NETWORKS": '["127.0.0.1/32"]',  # the local test receivers
             "PYTHONUNBUFFERED": "1",
         }
     )

@@ -117,7 +117,7 @@ def test_reaper_requeues_fails_and_reenqueues_from_the_rows(embedded):
     tenant = _tenant()
     old = utcnow() - timedelta(seconds=3 * TIMEOUT_S)
     stuck = _job(tenant, status="running", attempts=1, heartbeat_at=old)
-    exhausted = _job(tenant, status="running", attempts=3, heartbeat_at=old)
+    exhausted = _job(tenant, status="running", attempts=3, crashes=2, heartbeat_at=old)
     lost = _job(tenant, updated_at=old)  # queued, but its message is gone
     alive = _job(tenant, status="running", attempts=1, heartbeat_at=utcnow())
     fresh = _job(tenant)  # queued just now
@@ -208,3 +208,25 @@ def test_jobs_waiting_for_the_fbx_queue_are_not_stuck(embedded):
     assert [(m[0], m[1], m[2]) for m in _queued_messages(embedded)] == [
         ("dancegraph.export_fbx", waiting, "fbx")
     ]
+
+
+def test_transient_retries_do_not_use_up_the_crash_budget(embedded):
+    """A graph-store outage retried a job 4 times (4 claims); then its worker died once. That is
+    one crash, not the fourth: the job is requeued, and fails only at its third crash."""
+    tenant = _tenant()
+    old = utcnow() - timedelta(seconds=3 * TIMEOUT_S)
+    job_id = _job(tenant, status="running", attempts=4, heartbeat_at=old)
+    report = reaper.reap_once(embedded)
+    assert report.requeued == [job_id] and not report.failed
+    row = state.load(job_id)
+    assert (row.status, row.crashes, row.error_code) == ("queued", 1, None)
+    for crashes in (2, 3):
+        with db.session_scope() as session:
+            session.execute(
+                update(Job).where(Job.id == job_id).values(status="running", heartbeat_at=old)
+            )
+        report = reaper.reap_once(embedded)
+        assert state.load(job_id).crashes == crashes
+    row = state.load(job_id)
+    assert report.failed == [job_id] and row.error_code == "worker_lost"
+    assert row.error_message == "the job's worker stopped responding 3 times"

@@ -19,6 +19,7 @@ from services.worker import pipeline
 from tests.services.test_worker_harness import (  # noqa: F401 (fixtures)
     DATASET,
     VENV_BIN,
+    WEBHOOK_SECRET,
     copy_store,
     create_key,
     create_pg_database,
@@ -44,9 +45,9 @@ BVH_SPEC = {"dataset": DATASET, "alternatives": 2, "output": {"formats": ["bvh"]
 
 def _seed_analysis(store_root: Path, wav: Path) -> None:
     """Analyse ``wav`` once into the store's cache (``analysis/<sha256>.json``), as a job would."""
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
 
-    store = ObjectStore(store_root)
+    store = FileStore(store_root)
     with open(wav, "rb") as fh:
         key, _ = store.put_stream(fh)
     pipeline.analyze(store, key, key.rsplit("/", 1)[-1])
@@ -129,7 +130,7 @@ def test_job_through_api_in_redis_mode_with_fbx_and_signed_webhook(cluster, tmp_
     assert len(calls) == 2  # 503, then 200: delivered once, not again
     for call in calls:
         assert webhooks.verify(
-            call["body"], call["headers"][webhooks.SIGNATURE_HEADER], "worker-test-secret"
+            call["body"], call["headers"][webhooks.SIGNATURE_HEADER], WEBHOOK_SECRET
         )
     assert (
         calls[0]["headers"][webhooks.DELIVERY_HEADER]

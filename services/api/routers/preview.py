@@ -21,13 +21,13 @@ from services import jobs
 from services.api.deps import get_db, get_settings_dep, get_store, get_tenant_or_preview_token
 from services.api.preview_tokens import make_token
 from services.api.problems import ApiError
-from services.api.routers.jobs import PROBLEM, require_succeeded
+from services.api.routers.jobs import PROBLEM, require_succeeded, result_response
 from services.api.views import job_url
 from services.config import Settings
 from services.models import Job, Tenant
 from services.preview_server import (
     audio_media_type,
-    json_file_response,
+    json_bytes_response,
     json_response,
     pose_json_gz,
     render_page,
@@ -59,8 +59,7 @@ def pose_cache_prefix(job_id: str) -> str:
 
 
 def _alternatives(store: ObjectStore, job: Job) -> int:
-    folder = store.path(jobs.result_key(job.id, "alternatives"))
-    return len(list(folder.glob("*.bvh"))) if folder.is_dir() else 0
+    return len(jobs.bvh_files(store, job.id))
 
 
 @router.get(
@@ -96,11 +95,15 @@ def preview_page(
     response_class=FileResponse,
     responses={200: {"content": {"audio/*": {}}}, **ERRORS},
 )
-def preview_audio(job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)):
-    path = store.path(job.audio_key)
-    if not path.is_file():
+def preview_audio(
+    job: Job = Depends(preview_job),
+    store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
+):
+    if not store.exists(job.audio_key):
         raise ApiError(404, "result_not_found", f"job {job.id} has no stored song", field="job_id")
-    return FileResponse(path, media_type=audio_media_type(job.audio_format or job.audio_filename))
+    media = audio_media_type(job.audio_format or job.audio_filename)
+    return result_response(store, settings, job.audio_key, job.audio_filename or "audio", media)
 
 
 @router.get(
@@ -111,10 +114,10 @@ def preview_audio(job: Job = Depends(preview_job), store: ObjectStore = Depends(
 def preview_timeline(
     request: Request, job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)
 ):
-    path = store.path(jobs.result_key(job.id, TIMELINE))
-    if not path.is_file():
+    key = jobs.result_files(store, job.id).get(TIMELINE)
+    if key is None:
         raise ApiError(404, "result_not_found", f"job {job.id} has no timeline", field="job_id")
-    return json_file_response(request, path)
+    return json_bytes_response(request, store.get_bytes(key))
 
 
 @router.get(
@@ -128,6 +131,8 @@ def preview_poses(
     job: Job = Depends(preview_job),
     store: ObjectStore = Depends(get_store),
 ):
-    bvh = store.path(jobs.result_key(job.id, f"alternatives/{k}.bvh"))
-    gz = pose_json_gz(bvh, k, store, pose_cache_prefix(job.id))
+    key = jobs.result_files(store, job.id).get(f"alternatives/{k}.bvh")
+    if key is None:
+        raise ApiError(404, "result_not_found", f"no alternative {k}", field="k")
+    gz = pose_json_gz(store.local_path(key), k, store, pose_cache_prefix(job.id))
     return json_response(request, gz)
