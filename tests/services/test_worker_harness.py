@@ -26,7 +26,9 @@ import pytest
 from dancegraph.paths import REPO_ROOT
 
 REDIS_HOST, REDIS_PORT = "127.0.0.1", 6379
-REDIS_DB = 11  # a db number of its own: other tests and services use 0
+# a db number of its own (other tests and services use 0); overridable where several test runs
+# share one Redis
+REDIS_DB = int(os.environ.get("DANCEGRAPH_TEST_REDIS_DB", "11"))
 PG_ADMIN_URL = "postgresql://postgres@127.0.0.1:5432/postgres"
 DATASET = "demo"
 JOB_TIMEOUT_S = 10.0  # the stuck timeout in these tests: the reaper acts within seconds
@@ -200,12 +202,23 @@ class Cluster:
     def store_root(self) -> Path:
         return Path(self.env["DANCEGRAPH_STORE_ROOT"])
 
+    @property
+    def store(self):
+        """The deployment's object store, as the test reads it (S3: its own scratch folder)."""
+        from dancegraph.store import open_store
+
+        url = self.env.get("DANCEGRAPH_STORE_URL") or self.store_root
+        return open_store(url, self.home / "test-scratch")
+
     def _spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         log = self.home / f"{name}.log"
         self.logs[name] = log
+        own = {}
+        if self.env.get("DANCEGRAPH_STORE_URL"):  # S3: no folder shared between processes
+            own["DANCEGRAPH_STORE_ROOT"] = str(self.home / f"scratch-{name}")
         proc = subprocess.Popen(
             cmd,
-            env={**self.env, **(env or {})},
+            env={**self.env, **own, **(env or {})},
             cwd=str(REPO_ROOT),
             stdout=open(log, "ab"),  # noqa: SIM115 (the child owns it)
             stderr=subprocess.STDOUT,
@@ -372,14 +385,33 @@ class Cluster:
         return done
 
     def download(self, job_id: str, name: str) -> bytes:
-        r = httpx.get(f"{self.api_url}/v1/jobs/{job_id}/{name}", headers=self.headers(), timeout=60)
+        """A result file as a client gets it (following the S3 store's presigned redirect)."""
+        r = httpx.get(
+            f"{self.api_url}/v1/jobs/{job_id}/{name}",
+            headers=self.headers(),
+            timeout=60,
+            follow_redirects=True,
+        )
         assert r.status_code == 200, (name, r.status_code, r.text[:500])
         return r.content
 
 
-def make_cluster(home: Path, database_url: str, broker_url: str, store_root: Path) -> Cluster:
+def make_cluster(
+    home: Path,
+    database_url: str,
+    broker_url: str,
+    store_root: Path,
+    store_url: str = "",
+    store_env: dict[str, str] | None = None,
+) -> Cluster:
+    """A deployment's environment: the filesystem store at ``store_root``, or with
+    ``store_url`` the S3 store (``store_env``: its endpoint and credentials)."""
     home.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
+    env.pop("DANCEGRAPH_STORE_URL", None)
+    env.update(store_env or {})
+    if store_url:
+        env["DANCEGRAPH_STORE_URL"] = store_url
     env.update(
         {
             "DANCEGRAPH_HOME": str(home),
@@ -431,6 +463,14 @@ def copy_store(src: Path, dst: Path) -> Path:
     """A private copy of a prepared store (graphs and datasets), so tests never share results."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("jobs", "tmp"))
     return dst
+
+
+def upload_store(src: Path, store) -> None:
+    """A prepared filesystem store's objects (graphs, datasets) copied into another store."""
+    for path in sorted(src.rglob("*")):
+        rel = path.relative_to(src).as_posix()
+        if path.is_file() and not rel.startswith(("jobs/", "tmp/")):
+            store.put_file(rel, path)
 
 
 # --- fixtures -------------------------------------------------------------------------------
