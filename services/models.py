@@ -122,7 +122,7 @@ class Job(Base):
     error_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
     error_message: Mapped[str | None] = mapped_column(Text, nullable=True)
     error_field: Mapped[str | None] = mapped_column(String(200), nullable=True)
-    attempts: Mapped[int] = mapped_column(Integer, default=0, comment="claims: tries begun")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
     crashes: Mapped[int] = mapped_column(
         Integer,
         default=0,
