@@ -27,6 +27,8 @@ RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu -e . \
  && python -m dancegraph.music.weights fetch
 RUN useradd --create-home --uid 1000 dancegraph && mkdir -p /data && chown dancegraph /data
 USER dancegraph
+# compile the numba kernels into the user's cache once, at build time (dancegraph.jit)
+RUN python -m dancegraph.jit
 VOLUME ["/data"]
 EXPOSE 8000
 CMD ["uvicorn", "services.api.app:app", "--host", "0.0.0.0", "--port", "8000"]

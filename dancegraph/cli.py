@@ -1,43 +1,76 @@
 """The ``dancegraph`` command.
 
-Each subcommand is a thin shell: parse arguments, call the library, print a result. Subcommands
-register themselves in ``build_parser`` through one ``_add_*`` function per area.
+Each subcommand is a thin shell: parse arguments, call the library, print a result. The domain
+commands register themselves in ``build_parser`` through one ``_add_*`` function per area; the
+service commands (``serve``, ``worker``, ``reaper``, ``keys``, ``quickstart``, ``preview``) live
+in ``services.cli`` and join through the ``dancegraph.commands`` entry-point group, so this
+package never imports ``services`` and works without it.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections.abc import Sequence
+from importlib.metadata import entry_points
+from typing import TYPE_CHECKING, Any
 
 from dancegraph import __version__
 from dancegraph.errors import DanceGraphError
 
+if TYPE_CHECKING:
+    from dancegraph.spec import Spec
 
-def _print_json(obj) -> None:
+COMMAND_GROUP = "dancegraph.commands"  # entry points: callables add_commands(subparsers)
+
+
+def print_json(obj: Any) -> None:
+    """Print ``obj`` as indented JSON (non-JSON values as their ``str``), the commands' output."""
     json.dump(obj, sys.stdout, indent=2, default=str)
     sys.stdout.write("\n")
 
 
-def _read_spec(path: str | None) -> dict:
-    """The constraint spec JSON object in ``path`` ({} without one); SpecError naming the file."""
+def _read_spec(path: str | None, dataset: str | None = None) -> Spec:
+    """The constraint spec in the JSON file ``path`` (defaults without one), parsed once
+    (``parse_spec``; ``dataset`` overrides the file's); SpecError naming an unreadable file."""
     from dancegraph.errors import SpecError
+    from dancegraph.spec import parse_spec
 
     if not path:
-        return {}
+        return parse_spec(None, dataset=dataset)
     try:
-        with open(path, encoding="utf-8") as fh:
-            spec = json.load(fh)
-    except (OSError, ValueError) as exc:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
         raise SpecError(f"cannot read the spec {path}: {exc}", field=path) from exc
-    if not isinstance(spec, dict):
-        raise SpecError(f"{path}: the spec must be a JSON object", field=path)
-    return spec
+    return parse_spec(raw, dataset=dataset)
+
+
+STORE_HELP = (
+    "object store: a folder or s3://bucket/prefix "
+    "(default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's store)"
+)
+
+
+def open_cli_store(store: str | None):
+    """The ``--store`` given (a folder or ``s3://``), else the one the environment names."""
+    from dancegraph.paths import default_store, store_dir
+    from dancegraph.store import open_store
+
+    return open_store(store, store_dir()) if store else default_store()
+
+
+def _warm_kernels(*modules: str) -> None:
+    """Compile or load the kernels of ``modules`` (default: all) under the kernel cache's lock,
+    at the start of a command that runs them (``dancegraph.jit``)."""
+    from dancegraph import jit
+
+    jit.warm_kernels(modules or jit.KERNEL_MODULES)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Every command: the domain ones below, then those of the installed command groups."""
     parser = argparse.ArgumentParser(prog="dancegraph", description="Music in, dance out.")
     parser.add_argument("--version", action="version", version=f"dancegraph {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -45,23 +78,21 @@ def build_parser() -> argparse.ArgumentParser:
         _add_version,
         _add_convert,
         _add_synthesize,
-        _add_keys,
-        _add_service,
         _add_analyze,
         _add_dataset,
         _add_motion,
-        _add_quickstart,
         _add_eval,
-        _add_preview,
         _add_train,
     ):
         add(sub)
+    for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        entry.load()(sub)
     return parser
 
 
 def _add_version(sub) -> None:
     p = sub.add_parser("version", help="print the version as JSON")
-    p.set_defaults(func=lambda args: _print_json({"dancegraph": __version__}))
+    p.set_defaults(func=lambda args: print_json({"dancegraph": __version__}))
 
 
 def _add_analyze(sub) -> None:
@@ -76,8 +107,9 @@ def _add_analyze(sub) -> None:
     def run(args) -> None:
         from dancegraph.music.analysis import analyze
 
+        _warm_kernels("dancegraph.music.beats")
         result = analyze(args.audio)
-        _print_json(result.to_dict() if args.json else result.summary())
+        print_json(result.to_dict() if args.json else result.summary())
 
     p.set_defaults(func=run)
 
@@ -88,20 +120,13 @@ def _add_dataset(sub) -> None:
     ds_sub = p.add_subparsers(dest="dataset_command", required=True)
 
     def _store(args):
-        from dancegraph.paths import default_store, store_dir
-        from dancegraph.store import open_store
-
-        return open_store(args.store, store_dir()) if args.store else default_store()
+        return open_cli_store(args.store)
 
     imp = ds_sub.add_parser("import", help="import a folder of BVH files as a dataset")
     imp.add_argument("dir", help="folder with the motion files (and optionally manifest.yaml)")
     imp.add_argument("--name", required=True, help="dataset name (letters, digits, . _ -)")
     imp.add_argument("--manifest", default=None, help="manifest file (YAML or JSON)")
-    imp.add_argument(
-        "--store",
-        default=None,
-        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
-    )
+    imp.add_argument("--store", default=None, help=STORE_HELP)
     imp.add_argument(
         "--json", action="store_true", help="print the report as JSON (default: a table)"
     )
@@ -121,7 +146,7 @@ def _add_dataset(sub) -> None:
 
             report = import_dataset(args.dir, args.name, _store(args), manifest, progress)
         if args.json:
-            _print_json(report.to_dict())
+            print_json(report.to_dict())
         else:
             print(report.table())
         return 0
@@ -129,16 +154,12 @@ def _add_dataset(sub) -> None:
     imp.set_defaults(func=_import)
 
     ls = ds_sub.add_parser("list", help="list the stored datasets as JSON")
-    ls.add_argument(
-        "--store",
-        default=None,
-        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
-    )
+    ls.add_argument("--store", default=None, help=STORE_HELP)
 
     def _list(args) -> int:
         from dancegraph.motion.dataset import list_datasets
 
-        _print_json(list_datasets(_store(args)))
+        print_json(list_datasets(_store(args)))
         return 0
 
     ls.set_defaults(func=_list)
@@ -167,11 +188,7 @@ def _add_dataset(sub) -> None:
     bld.add_argument(
         "--rhythm-model", default=None, help="learned rhythm model file (.dgm): node signatures"
     )
-    bld.add_argument(
-        "--store",
-        default=None,
-        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
-    )
+    bld.add_argument("--store", default=None, help=STORE_HELP)
     bld.add_argument("--json", action="store_true", help="print the report as JSON")
 
     def _build(args) -> int:
@@ -197,7 +214,7 @@ def _add_dataset(sub) -> None:
                 _store(args), args.name, params, progress, args.embedding, args.rhythm_model
             )
         if args.json:
-            _print_json(report)
+            print_json(report)
         else:
             print(f"graph {args.name} version {report['version']} ({report['embedding']})")
             print(f"nodes {report['nodes']}  {report['nodes_by_kind']}")
@@ -230,7 +247,7 @@ def _add_motion(sub) -> None:
         from dancegraph.motion.demo import write_demo_library
 
         out = write_demo_library(args.out_dir, seed=args.seed)
-        _print_json({"dir": str(out), "files": sorted(f.name for f in out.iterdir())})
+        print_json({"dir": str(out), "files": sorted(f.name for f in out.iterdir())})
 
     demo.set_defaults(func=run_demo)
 
@@ -246,7 +263,7 @@ def _add_motion(sub) -> None:
         motion = read_bvh(args.path, fps=args.fps, scale=args.scale)
         sk = motion.skeleton
         _, skate = clean_foot_skate(motion)
-        _print_json(
+        print_json(
             {
                 "file": args.path,
                 "joints": sk.n_joints,
@@ -275,81 +292,9 @@ def _add_convert(sub) -> None:
         from dancegraph.motion.fbx import bvh_to_fbx
 
         summary = bvh_to_fbx(args.input, args.output, fps=args.fps, scale=args.scale, validate=True)
-        _print_json({"output": args.output, **summary})
+        print_json({"output": args.output, **summary})
 
     p.set_defaults(func=run)
-
-
-def _add_keys(sub) -> None:
-    p = sub.add_parser("keys", help="API keys of the service (stored hashed)")
-    keys_sub = p.add_subparsers(dest="keys_command", required=True)
-    c = keys_sub.add_parser("create", help="create an API key for a tenant; prints it once")
-    c.add_argument("--tenant", required=True, help="tenant name (created if new)")
-    c.add_argument("--database-url", default=None, help="override DANCEGRAPH_DATABASE_URL")
-
-    def _create(args) -> int:
-        # services code is imported here so the domain library never needs it
-        from services.keys import create_key_cli
-
-        _print_json(create_key_cli(args.tenant, args.database_url))
-        return 0
-
-    c.set_defaults(func=_create)
-
-
-def _add_service(sub) -> None:
-    """``serve``, ``worker``, ``reaper``: the service processes (thin: services/ does the work)."""
-    p = sub.add_parser("serve", help="run API + worker + reaper (+ in-process graph store)")
-    p.add_argument(
-        "--embedded",
-        action="store_true",
-        help="SQLite, filesystem broker, in-process graph store under DANCEGRAPH_HOME (no servers)",
-    )
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--concurrency", type=int, default=1, help="worker pool processes")
-
-    def _serve(args):
-        from services.embedded import serve
-
-        return serve(args.host, args.port, embedded=args.embedded, concurrency=args.concurrency)
-
-    p.set_defaults(func=_serve)
-
-    p = sub.add_parser("worker", help="run a Celery worker (queues: analysis, fbx)")
-    p.add_argument(
-        "-Q", "--queues", default="analysis,fbx", help="comma-separated queues to consume"
-    )
-    p.add_argument("-c", "--concurrency", type=int, default=1, help="pool processes")
-    p.add_argument("-n", "--name", default=None, help="worker node name (default: celery's)")
-
-    def _worker(args):
-        import os
-
-        from services.embedded import worker_command
-
-        cmd = worker_command(
-            tuple(q for q in args.queues.split(",") if q), args.concurrency, args.name
-        )
-        os.execv(cmd[0], cmd)  # become the worker: signals reach Celery directly
-
-    p.set_defaults(func=_worker)
-
-    p = sub.add_parser("reaper", help="requeue or fail jobs stuck past the timeout (loop)")
-    p.add_argument("--interval", type=float, default=None, help="seconds between sweeps")
-    p.add_argument("--once", action="store_true", help="one sweep, print what it did, exit")
-
-    def _reaper(args):
-        from services.worker import logs, reaper
-
-        logs.configure()
-        if args.once:
-            _print_json(reaper.reap_once().to_dict())
-            return 0
-        reaper.run_forever(args.interval or reaper.default_interval())
-        return 0
-
-    p.set_defaults(func=_reaper)
 
 
 def _add_synthesize(sub) -> None:
@@ -365,27 +310,21 @@ def _add_synthesize(sub) -> None:
     p.add_argument(
         "--alternatives", type=int, default=None, help="number of alternatives (overrides the spec)"
     )
-    p.add_argument(
-        "--store",
-        default=None,
-        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
-    )
+    p.add_argument("--store", default=None, help=STORE_HELP)
 
     def run(args) -> None:
-        from dancegraph.paths import default_store, store_dir
+        from dancegraph.graph.artifact import open_graph
         from dancegraph.render import synthesize
-        from dancegraph.store import open_store
-        from services.graphstore.client import LocalGraphStore, parse_spec
+        from dancegraph.spec import parse_spec
 
-        spec = _read_spec(args.spec)
+        spec = _read_spec(args.spec, dataset=args.dataset)
         if args.alternatives is not None:
-            spec["alternatives"] = args.alternatives
-        parsed = parse_spec(args.dataset, spec)
-        store = open_store(args.store, store_dir()) if args.store else default_store()
-        graph = LocalGraphStore(store).graph(args.dataset)
-        done = synthesize(args.audio, graph, parsed, args.out)
+            spec = parse_spec({**spec.model_dump(mode="json"), "alternatives": args.alternatives})
+        graph = open_graph(open_cli_store(args.store), args.dataset)
+        _warm_kernels()
+        done = synthesize(args.audio, graph, spec, args.out)
         timeline = done["timeline"]
-        _print_json(
+        print_json(
             {
                 "out": args.out,
                 "files": done["files"],
@@ -426,32 +365,25 @@ def _add_eval(sub) -> None:
         "--result", default=None, help="score an existing synthesize/job result folder instead"
     )
     p.add_argument("--audio-file", default=None, help="with --result: the song, for librosa beats")
-    p.add_argument(
-        "--store",
-        default=None,
-        help="object store: a folder or s3://bucket/prefix (default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's)",
-    )
+    p.add_argument("--store", default=None, help=STORE_HELP)
 
     def run(args) -> int:
         from dancegraph.errors import SpecError
         from dancegraph.eval.harness import evaluate, evaluate_result, load_library, load_song
+        from dancegraph.graph.artifact import open_graph
         from dancegraph.motion.dataset import load_dataset
-        from dancegraph.paths import default_store, store_dir
-        from dancegraph.store import open_store
-        from services.graphstore.client import LocalGraphStore, parse_spec
 
-        store = open_store(args.store, store_dir()) if args.store else default_store()
+        store = open_cli_store(args.store)
+        _warm_kernels()
         if args.result:
             from dancegraph.preview import read_timeline
 
             prov = read_timeline(args.result).get("provenance", {})
             name = args.dataset or prov.get("dataset", {}).get("name")
-            version = prov.get("graph", {}).get("version")
-            graphs = LocalGraphStore(store)
-            graph = graphs.graph_version(name, version) if version else graphs.graph(name)
+            graph = open_graph(store, name, prov.get("graph", {}).get("version") or None)
             lib = load_library(graph, load_dataset(store, name))
             metrics = evaluate_result(args.result, lib, args.audio_file)
-            _print_json({"out": args.result, "rows": metrics["rows"]})
+            print_json({"out": args.result, "rows": metrics["rows"]})
             return 0
         if not args.audio or not args.dataset or not args.out:
             raise SpecError(
@@ -459,8 +391,8 @@ def _add_eval(sub) -> None:
                 code="eval_usage",
                 field="audio",
             )
-        parsed = parse_spec(args.dataset, _read_spec(args.spec))
-        graph = LocalGraphStore(store).graph(args.dataset)
+        parsed = _read_spec(args.spec, dataset=args.dataset)
+        graph = open_graph(store, args.dataset)
         songs = [load_song(a, graph=graph) for a in args.audio]  # bad audio: before the library
         lib = load_library(graph, load_dataset(store, args.dataset))
         metrics = evaluate(
@@ -471,45 +403,7 @@ def _add_eval(sub) -> None:
             args.rows,
             progress=lambda song, row: print(f"{song}: {row}", file=sys.stderr),
         )
-        _print_json({"out": args.out, "seconds": metrics["seconds"], "rows": metrics["rows"]})
-        return 0
-
-    p.set_defaults(func=run)
-
-
-def _add_quickstart(sub) -> None:
-    p = sub.add_parser(
-        "quickstart",
-        help="the main job end to end on the embedded default: library → graph → job → files",
-    )
-    p.add_argument("--out", default="out", help="where to download the result files")
-    p.add_argument("--formats", default="bvh,fbx", help="comma-separated output formats (bvh, fbx)")
-
-    def run(args) -> int:
-        from services.quickstart import run as quickstart
-
-        job = quickstart(args.out, [f for f in args.formats.split(",") if f])
-        print(f"job {job['id']} succeeded; results in {os.path.abspath(args.out)}")
-        return 0
-
-    p.set_defaults(func=run)
-
-
-def _add_preview(sub) -> None:
-    p = sub.add_parser(
-        "preview", help="watch a synthesize output in the browser: the dance on the song"
-    )
-    p.add_argument("result_dir", help="a `dancegraph synthesize --out` folder (with timeline.json)")
-    p.add_argument(
-        "--audio", default=None, help="the song (default: found through timeline.json's provenance)"
-    )
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8050)
-
-    def run(args) -> int:
-        from services.preview_server import serve
-
-        serve(args.result_dir, args.audio, args.host, args.port)
+        print_json({"out": args.out, "seconds": metrics["seconds"], "rows": metrics["rows"]})
         return 0
 
     p.set_defaults(func=run)
@@ -557,7 +451,7 @@ def _run_train(kind: str, args) -> int:
         resume=args.resume,
         phase1_epochs=getattr(args, "phase1_epochs", None),
     )
-    _print_json(summary)
+    print_json(summary)
     return 0
 
 

@@ -7,19 +7,31 @@ into RFC 9457 problem details; a worker turns them into a job failure with the s
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
 
 class DanceGraphError(Exception):
-    """Base error: ``code`` is stable, ``message`` is for people, ``field`` names the culprit."""
+    """Base error: ``code`` is stable, ``message`` is for people, ``field`` names the culprit,
+    ``errors`` (optional) lists every failure as ``{field, code, message}``."""
 
     code: str = "error"
     status: int = 400  # the HTTP status the API answers with
 
-    def __init__(self, message: str, *, code: str | None = None, field: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        *,
+        code: str | None = None,
+        field: str | None = None,
+        errors: list[dict[str, str]] | None = None,
+    ):
         super().__init__(message)
         self.message = message
         if code is not None:
             self.code = code
         self.field = field
+        self.errors = errors
 
     def to_dict(self) -> dict:
         out = {"code": self.code, "message": self.message}
@@ -69,3 +81,31 @@ class ModelFileError(DanceGraphError):
 
     code = "model_file_invalid"
     status = 500
+
+
+def field_path(loc: Sequence[Any], prefix: str | None = None) -> str:
+    """A validation error's location as the field path users see: ``spec.weights.rhythm``,
+    ``spec.include[0].node``, ``query.limit``. With a ``prefix`` a leading ``body`` is dropped."""
+    parts = [str(p) for p in loc if p != "body" or prefix is None]
+    if prefix:
+        parts = [prefix, *parts]
+    out = ""
+    for p in parts:
+        if p.isdigit() and out:
+            out += f"[{p}]"
+        else:
+            out += ("." if out else "") + p
+    return out or (prefix or "request")
+
+
+def field_errors(errors: Iterable[Mapping[str, Any]], prefix: str | None = None) -> list[dict]:
+    """Pydantic's ``ValidationError.errors()`` as ``[{field, code, message}]`` (``code``: the
+    pydantic error type, e.g. ``extra_forbidden``): the one mapping of validation failures."""
+    return [
+        {
+            "field": field_path(err.get("loc", ()), prefix),
+            "code": str(err.get("type", "invalid")),
+            "message": str(err.get("msg", "invalid value")),
+        }
+        for err in errors
+    ]

@@ -1,15 +1,22 @@
-"""Compiled kernels (numba): where their on-disk cache lives, and a warm-up that fills it safely.
+"""Compiled kernels (numba): a registry of warm-ups, their on-disk cache, and the lock that
+makes compiling into that cache safe.
 
 A new process would otherwise spend ~25 s compiling the beat decoder, librosa's beat kernels and
-the graph search on its first song. :func:`warm_up` compiles (or loads) all of them once; a worker
-calls it at start, before its pool forks, so every child inherits the compiled code.
+the graph search on its first song. Each module that owns kernels registers a warm-up when it is
+imported (:func:`register`: run the kernels once on a tiny input); this module imports none of
+them. A process that serves songs — the worker (before its pool forks, so every child inherits
+the compiled code), the graph store, the CLI commands that analyse or search — imports what it
+uses and calls :func:`warm_up` at start.
 
 numba's cache is not safe when two processes compile the same gufunc at the same moment
 (numba issue #10128: the ``.nbc`` files of one function and of its gufunc wrapper can come from
-different processes, and the next load segfaults). Compilation into the shared cache therefore
-happens under an inter-process file lock (:func:`compile_lock`).
+different processes, and the next load segfaults). Every warm-up therefore runs under an
+inter-process file lock (:func:`compile_lock`), and the kernels' entry points call
+:func:`ensure` (a set lookup once warm), so a process that did not warm up at start — a library
+user, a test — still compiles only under the lock: no path reaches a kernel outside it.
 
-Cache folder: ``NUMBA_CACHE_DIR`` when set, else ``$DANCEGRAPH_HOME/numba_cache``.
+Cache folder: ``dancegraph.paths.kernel_cache_dir()`` (``NUMBA_CACHE_DIR`` when set).
+Run ``python -m dancegraph.jit`` to compile every kernel once (the install step does).
 """
 
 from __future__ import annotations
@@ -17,84 +24,118 @@ from __future__ import annotations
 import fcntl
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["cache_dir", "configure_cache", "compile_lock", "warm_up"]
+__all__ = ["configure_cache", "compile_lock", "register", "ensure", "warm_up", "warm_kernels"]
+
+# the modules that register kernels (imported by warm_kernels)
+KERNEL_MODULES = (
+    "dancegraph.music.barpointer",
+    "dancegraph.music.beats",
+    "dancegraph.graph.search",
+)
+
+_registry: dict[str, Callable[[], None]] = {}
+_warm: set[str] = set()
+_warm_lock = threading.RLock()
 
 
-def cache_dir() -> Path:
-    """The folder numba caches compiled kernels in (created on first use)."""
-    from dancegraph.paths import home_dir
+def configure_cache() -> Path:
+    """Point numba's cache at ``kernel_cache_dir()`` for kernels decorated from now on (also
+    reaches librosa's kernels when librosa is imported later, through ``NUMBA_CACHE_DIR``)."""
+    import numba
 
-    env = os.environ.get("NUMBA_CACHE_DIR")
-    path = Path(env) if env else home_dir() / "numba_cache"
+    from dancegraph.paths import kernel_cache_dir
+
+    if not numba.config.CACHE_DIR:
+        numba.config.CACHE_DIR = str(kernel_cache_dir())
+    os.environ.setdefault("NUMBA_CACHE_DIR", numba.config.CACHE_DIR)
+    path = Path(numba.config.CACHE_DIR)
     path.mkdir(parents=True, exist_ok=True)
     return path
 
 
-def configure_cache() -> Path:
-    """Point numba's cache at :func:`cache_dir` for kernels decorated from now on (also reaches
-    librosa's kernels when librosa is imported later, through ``NUMBA_CACHE_DIR``)."""
-    import numba
-
-    path = cache_dir()
-    if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = str(path)
-    os.environ.setdefault("NUMBA_CACHE_DIR", numba.config.CACHE_DIR)
-    return Path(numba.config.CACHE_DIR)
+_held = threading.local()
 
 
 @contextmanager
 def compile_lock() -> Iterator[None]:
-    """Hold the cache folder's inter-process lock (blocks until other compiling processes end)."""
-    lock_path = configure_cache() / ".compile.lock"
-    with open(lock_path, "a+b") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
+    """Hold the cache folder's inter-process lock (blocks until other compiling processes end).
+    Re-entrant within a thread (a warm-up may reach another part's warm-up)."""
+    if getattr(_held, "depth", 0):
+        _held.depth += 1
         try:
             yield
         finally:
+            _held.depth -= 1
+        return
+    lock_path = configure_cache() / ".compile.lock"
+    with open(lock_path, "a+b") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        _held.depth = 1
+        try:
+            yield
+        finally:
+            _held.depth = 0
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-_warm: set[str] = set()
-_warm_lock = threading.Lock()
+def register(name: str, warm: Callable[[], None]) -> None:
+    """Register ``warm`` (compile or load ``name``'s kernels by running them once; it may call
+    :func:`ensure` for its own name) — called by the owning module at import."""
+    _registry[name] = warm
 
 
-def _warm_music() -> None:
-    from dancegraph.music import beats
-
-    beats.warm_up()
-
-
-def _warm_search() -> None:
-    from dancegraph.graph import search
-
-    search.warm_up()
+def ensure(name: str) -> None:
+    """Make sure ``name``'s kernels are compiled in this process, warming them up under the lock
+    if not yet (a set lookup once warm). Kernel entry points call this before a kernel runs."""
+    if name not in _warm:
+        warm_up([name])
 
 
-_WARMERS = {"music": _warm_music, "search": _warm_search}
-
-
-def warm_up(music: bool = True, search: bool = True) -> None:
-    """Compile or load the kernels a job uses — ``music``: beat decoding with librosa's kernels
-    and the BeatNet model; ``search``: the graph search — under :func:`compile_lock`.
-
-    Once per process and part: the entry points (``beats.track_beats``, ``search.search``) call
-    it first, so no process compiles into the shared cache outside the lock. Cheap afterwards.
-    """
-    parts = [p for p, on in (("music", music), ("search", search)) if on and p not in _warm]
-    if not parts:
-        return
+def warm_up(names: Iterable[str] | None = None) -> list[str]:
+    """Compile or load the kernels of ``names`` (default: every registered part) under
+    :func:`compile_lock`, once per process and part; returns the parts warmed by this call.
+    KeyError for a name no imported module registered."""
+    wanted = list(_registry) if names is None else list(names)
+    todo = [n for n in wanted if n not in _warm]
+    if not todo:
+        return []
+    warmers = [(n, _registry[n]) for n in todo]
+    done = []
     with _warm_lock, compile_lock():
-        for part in parts:
-            if part in _warm:
+        for name, warm in warmers:
+            if name in _warm:
                 continue
-            # marked first: the warm-up runs through the same guarded entry points
-            _warm.add(part)
+            _warm.add(name)  # first: the warm-up runs through the entry points that call ensure
             try:
-                _WARMERS[part]()
+                warm()
             except BaseException:
-                _warm.discard(part)
+                _warm.discard(name)
                 raise
+            done.append(name)
+    return done
+
+
+def warm_kernels(modules: Iterable[str] = KERNEL_MODULES) -> list[str]:
+    """Import ``modules`` (default: every kernel module) and warm every registered part: what a
+    process calls at start (install step and worker: all; the CLI: what its command runs)."""
+    import importlib
+
+    for module in modules:
+        importlib.import_module(module)
+    return warm_up()
+
+
+if __name__ == "__main__":
+    import time
+
+    from dancegraph import jit  # the registry lives in the imported module, not in __main__
+
+    t0 = time.perf_counter()
+    parts = jit.warm_kernels()
+    print(
+        f"kernels ready ({', '.join(parts) or 'already warm'}) in {time.perf_counter() - t0:.1f} s"
+    )

@@ -24,6 +24,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,10 @@ from dancegraph.motion import quat
 from dancegraph.motion.bvh import write_bvh
 from dancegraph.motion.skeleton import Motion
 from dancegraph.spec import Spec
+
+if TYPE_CHECKING:
+    from dancegraph.graph.search import SearchResult
+    from dancegraph.music.analysis import MusicAnalysis
 
 TIMELINE_FORMAT = 1
 TIMELINE = "timeline.json"
@@ -215,23 +220,23 @@ def stage_violation(root_xz: np.ndarray, stage) -> float:
 
 def render(
     graph: MotionGraph,
-    analysis,
-    result,
+    analysis: MusicAnalysis,
+    result: SearchResult,
     spec: Spec,
     out_dir: str | Path,
     *,
     exporter=None,
     extra_provenance: dict | None = None,
 ) -> dict:
-    """Write every alternative of ``result`` (a ``SearchResult`` or its ``to_dict()``) into ``out_dir``.
+    """Write every alternative of ``result`` (the search on ``graph``) into ``out_dir``.
 
-    ``analysis``: the song's ``MusicAnalysis``. FBX files are written through ``exporter`` (a
+    ``analysis``: the song's analysis the search answered. FBX files are written through ``exporter`` (a
     ``dancegraph.motion.fbx.FbxExporter``; default the shared warm one) when the spec asks for
     them. Returns ``{"files": [paths relative to out_dir], "timeline": {...}}``.
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
-    found = result.to_dict() if hasattr(result, "to_dict") else dict(result)
+    found = result.to_dict()
     alternatives = found.get("alternatives") or []
     if not alternatives:
         raise DanceGraphError(
@@ -297,7 +302,7 @@ def render(
                 **{
                     key: to_json_types(v)
                     for key, v in alt.items()
-                    if key not in {"nodes", "per_bar", "cost", "violations", "placements"}
+                    if key not in {"nodes", "index", "per_bar", "cost", "violations", "placements"}
                 },
             }
         )
@@ -475,16 +480,14 @@ def synthesize(
     if isinstance(audio, str | Path) or sr is not None:
         analysis = add_music_terms(analysis, graph, audio if sr is None else (audio, sr))
     found = search(graph, analysis, spec)
-    found_dict = found.to_dict()
-    found_dict.setdefault("graph", {"name": graph.name, "version": graph.version})
     source = {"audio": _audio_provenance(Path(audio))} if isinstance(audio, str | Path) else {}
     rendered = render(
         graph,
         analysis,
-        found_dict,
+        found,
         spec,
         out_dir,
         exporter=exporter,
         extra_provenance=source or None,
     )
-    return {**rendered, "analysis": analysis.summary(), "search": found_dict}
+    return {**rendered, "analysis": analysis.summary(), "search": found.to_dict()}

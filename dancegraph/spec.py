@@ -1,7 +1,8 @@
 """The constraint spec: what a user asks of a dance (DESIGN.md §5).
 
 One pydantic model shared by the API (request validation and ``openapi.yaml``), the CLI
-(``--spec FILE``) and the graph search. Every field has a default, so ``{}`` plus a dataset is a
+(``--spec FILE``) and the graph search, and one validator, :func:`parse_spec`, that every entry
+point (API, ``dancegraph.submit`` task, graph-store service, CLI) calls once. Every field has a default, so ``{}`` plus a dataset is a
 valid spec; unknown fields are rejected (``extra="forbid"``) so typos never pass silently.
 Types are strict (``true`` is not 1, ``"3"`` is not 3; an integer is a valid float), numbers
 finite, and every string bounded. Times are seconds from the start of the song; bar indices
@@ -10,7 +11,10 @@ count from 0.
 
 from __future__ import annotations
 
+import json
+import math
 import re
+from collections.abc import Mapping
 from typing import Annotated, Literal
 
 from pydantic import (
@@ -19,13 +23,17 @@ from pydantic import (
     Field,
     HttpUrl,
     UrlConstraints,
+    ValidationError,
     field_validator,
     model_validator,
 )
 
+from dancegraph.errors import SpecError, field_errors
+
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
 
+MAX_SPEC_DEPTH = 32  # a spec nests 4 deep; anything deeper is an attack or a mistake
 MAX_ID_CHARS = 100  # node ids, take ids, tags: the longest real one is far shorter
 MAX_URL_CHARS = 2000
 
@@ -193,3 +201,120 @@ class Spec(_Strict):
                 ):
                     raise ValueError(f"waypoints[{i}] lies outside the stage")
         return self
+
+
+def parse_spec(data: str | bytes | Mapping | Spec | None, *, dataset: str | None = None) -> Spec:
+    """The one validator of a constraint spec; entry points call it once and pass the ``Spec`` on.
+
+    ``data``: JSON text (``str`` or UTF-8 ``bytes``; blank or None means ``{}``), a decoded JSON
+    object, or a ``Spec`` (re-validated only when ``dataset`` changes it). ``dataset``: when
+    given it replaces the spec's dataset (a graph-store path or ``--dataset`` wins).
+
+    Raises ``SpecError`` (status 422) with ``code`` ``spec_malformed`` (not UTF-8, not JSON, not
+    an object, a non-finite number such as ``NaN``, ``Infinity`` or ``1e309``, nesting deeper
+    than ``MAX_SPEC_DEPTH``), ``spec_unknown_field`` (a field the model does not know) or
+    ``spec_invalid`` (also: text with NUL or a lone surrogate, which PostgreSQL's JSON cannot
+    hold); ``field`` is the first failure's path (``spec.weights.rhythm``), ``errors`` all of
+    them.
+    """
+    if isinstance(data, Spec):
+        if dataset is None or dataset == data.dataset:
+            return data
+        data = data.model_dump(mode="json")
+    obj = _decode(data)
+    check_json_value(obj)
+    if dataset is not None:
+        obj = {**obj, "dataset": dataset}
+    try:
+        return Spec.model_validate(obj)
+    except ValidationError as exc:
+        errors = field_errors(exc.errors(), prefix="spec")
+        first = errors[0]
+        unknown = any(e["code"] == "extra_forbidden" for e in errors)
+        raise SpecError(
+            f"{first['field']}: {first['message']}",
+            code="spec_unknown_field" if unknown else "spec_invalid",
+            field=first["field"],
+            errors=errors,
+        ) from exc
+
+
+def _decode(data: str | bytes | Mapping | None) -> dict:
+    """The spec as a JSON object (dict), or SpecError ``spec_malformed``."""
+    if isinstance(data, bytes):
+        try:
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise SpecError("spec is not UTF-8 text", code="spec_malformed", field="spec") from exc
+    if data is None or (isinstance(data, str) and data.strip() == ""):
+        return {}
+    if isinstance(data, str):
+        try:
+            data = json.loads(data, parse_float=_finite, parse_constant=_no_constant)
+        except json.JSONDecodeError as exc:
+            raise SpecError(
+                f"spec is not valid JSON: {exc.msg} at char {exc.pos}",
+                code="spec_malformed",
+                field="spec",
+            ) from exc
+        except RecursionError as exc:
+            raise SpecError(
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                code="spec_malformed",
+                field="spec",
+            ) from exc
+        except ValueError as exc:  # a non-finite number, an integer with too many digits
+            raise SpecError(f"spec: {exc}", code="spec_malformed", field="spec") from exc
+    if not isinstance(data, Mapping):
+        raise SpecError("spec must be a JSON object", code="spec_malformed", field="spec")
+    return dict(data)
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:40]} is out of range")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _bad_text(text: str) -> str | None:
+    if "\x00" in text:
+        return "text may not contain NUL characters"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "text may not contain lone UTF-16 surrogates"
+    return None
+
+
+def check_json_value(data: object) -> None:
+    """Raise ``SpecError`` for the first thing in a decoded JSON value that PostgreSQL's JSON
+    type cannot store (NUL, a lone surrogate, a non-finite number) or that nests deeper than
+    ``MAX_SPEC_DEPTH``; walks without recursion, so depth alone cannot crash it."""
+    stack: list[tuple[object, str, int]] = [(data, "spec", 1)]
+    while stack:
+        value, path, depth = stack.pop()
+        if depth > MAX_SPEC_DEPTH:
+            raise SpecError(
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                code="spec_malformed",
+                field="spec",
+            )
+        if isinstance(value, str):
+            why = _bad_text(value)
+            if why:
+                raise SpecError(f"{path}: {why}", field=path)
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise SpecError(f"{path}: numbers must be finite", code="spec_malformed", field=path)
+        elif isinstance(value, Mapping):
+            for key, item in value.items():
+                why = _bad_text(str(key))
+                if why:
+                    raise SpecError(f"{path}: key {why}", field=path)
+                stack.append((item, f"{path}.{key}", depth + 1))
+        elif isinstance(value, list | tuple):
+            stack.extend((item, f"{path}[{i}]", depth + 1) for i, item in enumerate(value))

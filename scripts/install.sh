@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One install step for a fresh machine: the project venv (.venv), BeatNet's weights taken from its
-# pinned wheel, and Blender's own venv (.venv-blender) for FBX export. Idempotent: a second run
-# only checks. Set DANCEGRAPH_SKIP_BLENDER=1 to skip FBX support.
+# pinned wheel, the compiled kernels, and Blender's own venv (.venv-blender) for FBX export.
+# Idempotent: a second run only checks. Set DANCEGRAPH_SKIP_BLENDER=1 to skip FBX support.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -21,6 +21,9 @@ if [ ! -f "$stamp" ]; then
 fi
 
 .venv/bin/python -m dancegraph.music.weights fetch
+
+# compile the numba kernels once into the per-user cache (a later run only loads them)
+.venv/bin/python -m dancegraph.jit
 
 if [ "${DANCEGRAPH_SKIP_BLENDER:-0}" != "1" ]; then
   bash scripts/install-blender.sh

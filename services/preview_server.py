@@ -34,8 +34,8 @@ from dancegraph.preview import (
 )
 from dancegraph.render import TIMELINE
 from dancegraph.store import FileStore, ObjectStore, file_sha256
-from services.api import problems
-from services.api.problems import ApiError
+from services.common import problems
+from services.common.problems import ApiError
 
 STATIC_DIR = Path(__file__).resolve().parent / "preview_static"
 ASSETS_PATH = "/preview-static"
@@ -74,7 +74,7 @@ def render_page(
     return HTMLResponse(html, headers={"Cache-Control": "no-store"})
 
 
-# the upload checks' container names (services.api.uploads.sniff_container) → content types
+# the upload checks' container names (services.common.uploads.sniff_container) → content types
 _AUDIO_TYPES = {
     "wav": "audio/wav",
     "flac": "audio/flac",

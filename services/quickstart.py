@@ -5,7 +5,9 @@
 2. Picks a song — a CC track from ``../shared`` or a song the project synthesises.
 3. Starts the embedded service (API on uvicorn, a Celery worker child on the filesystem broker,
    the in-process graph store, SQLite), creates an API key, submits the song over HTTP, waits for
-   the job, downloads every result file into ``--out`` and prints where they are.
+   the job, downloads every result file into ``--out`` in the layout of ``dancegraph synthesize``
+   (``alternatives/<k>.bvh``, ``timeline.json``, the song), so ``dancegraph preview OUT`` plays
+   it, and prints where they are.
 Steps already done (dataset imported, graph built) are reused on the next run.
 """
 
@@ -14,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import socket
 import threading
 import time
@@ -63,6 +66,26 @@ def prepare_library(store: ObjectStore, home: Path, say) -> tuple[str, Path]:
         built = build_dataset_graph(store, name, BuildParams())
         say(f"  {built['nodes']} nodes, {built['edges']} edges in {built['seconds']:.1f} s")
     return name, song
+
+
+def download_result(client: httpx.Client, job: dict, out: Path, song: Path, say=print) -> None:
+    """Write a succeeded job's files into ``out`` in the layout ``dancegraph synthesize`` writes
+    (``alternatives/<k>.bvh|.fbx``, ``timeline.json``) plus a copy of the song, so
+    ``dancegraph preview OUT`` shows it as it is."""
+    downloads = [("timeline.json", job["timeline_url"])] if job.get("timeline_url") else []
+    for alt in job["alternatives"]:
+        downloads += [
+            (f"alternatives/{alt['index']}.{fmt}", url) for fmt, url in alt["downloads"].items()
+        ]
+    (out / "alternatives").mkdir(parents=True, exist_ok=True)
+    for name, url in downloads:
+        target = out / name
+        reply = client.get(url)
+        reply.raise_for_status()
+        target.write_bytes(reply.content)
+        say(f"wrote {target} ({len(reply.content)} bytes)")
+    if song.resolve() != (out / song.name).resolve():
+        shutil.copyfile(song, out / song.name)  # the timeline names it; the preview finds it
 
 
 def run(out_dir: str, formats: list[str], say=print) -> dict:
@@ -116,19 +139,7 @@ def run(out_dir: str, formats: list[str], say=print) -> dict:
                     say(f"  {job['status']}: {job.get('stage')} {job.get('progress')}%")
             if job["status"] != "succeeded":
                 raise SystemExit(f"job {job['id']} {job['status']}: {job.get('error')}")
-            out = Path(out_dir).resolve()
-            out.mkdir(parents=True, exist_ok=True)
-            downloads = [("timeline.json", job["timeline_url"])] if job.get("timeline_url") else []
-            for alt in job["alternatives"]:
-                downloads += [
-                    (f"{alt['index']}.{fmt}", url) for fmt, url in alt["downloads"].items()
-                ]
-            for name, url in downloads:
-                target = out / name
-                reply = client.get(url)
-                reply.raise_for_status()
-                target.write_bytes(reply.content)
-                say(f"wrote {target} ({len(reply.content)} bytes)")
+            download_result(client, job, Path(out_dir).resolve(), song, say)
             return job
     finally:
         server.should_exit = True

@@ -7,11 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from dancegraph.paths import REPO_ROOT, shared_dir
+from dancegraph.paths import shared_dir
 
-# One numba cache for the test process and every worker it starts (tests give each worker its own
-# DANCEGRAPH_HOME, which would otherwise mean a cold compile per worker).
-os.environ.setdefault("NUMBA_CACHE_DIR", str(REPO_ROOT / "var" / "numba_cache"))
+# Compiled kernels: the per-user cache (dancegraph.paths.kernel_cache_dir) that the install step
+# filled, shared by the test process and every worker it starts whatever their DANCEGRAPH_HOME.
 
 
 @pytest.fixture(scope="session")

@@ -427,6 +427,28 @@ def load_current(store: ObjectStore, name: str, *, verify: bool = False) -> Moti
     return load_graph(graph_folder(store, name, version), verify=verify)
 
 
+def open_graph(store: ObjectStore, name: str, version: str | None = None) -> MotionGraph:
+    """Dataset ``name``'s graph ready to search: ``version`` (default: the current one) loaded
+    and the learned models it was built with checked, so a bad model file fails here, not in a
+    job. Raises NotFoundError (``unknown_dataset``; ``unknown_graph_version`` for a version that
+    does not exist) or ModelFileError."""
+    from dancegraph.embed.learned import load_graph_models
+
+    if version is None:
+        graph = load_current(store, name)
+    else:
+        try:
+            graph = load_graph(graph_folder(store, name, version))
+        except (ValueError, NotFoundError) as exc:
+            raise NotFoundError(
+                f"dataset {name!r} has no graph version {version!r}",
+                code="unknown_graph_version",
+                field="version",
+            ) from exc
+    load_graph_models(graph)
+    return graph
+
+
 def graph_from_arrays(arrays: dict[str, np.ndarray], manifest: dict) -> MotionGraph:
     """An in-memory graph (no folder), e.g. for tests and benchmarks."""
     return MotionGraph(manifest=dict(manifest), arrays=dict(arrays))

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dancegraph import jit
 from dancegraph.embed import descriptor
 from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import _dp, choreography
@@ -72,6 +73,11 @@ RECREATE_WEIGHT = 100.0  # per bar whose motif differs from the reference take's
 
 @dataclass
 class Alternative:
+    """One path through the graph: ``nodes`` (T,) node ids and ``index`` (T,) their graph rows,
+    one per music bar; ``cost`` the total C; ``per_bar`` each bar's cost terms; ``violations``
+    the structure pairs it breaks; ``placements`` (T, 3) x, z (metres), yaw (radians) of each
+    bar's first frame; ``choreography`` the motif report when the spec asked for one."""
+
     nodes: list[str]
     index: np.ndarray
     cost: float
@@ -83,6 +89,7 @@ class Alternative:
     def to_dict(self) -> dict:
         return {
             "nodes": self.nodes,
+            "index": np.asarray(self.index, dtype=int).tolist(),
             "cost": round(float(self.cost), 4),
             "per_bar": self.per_bar,
             "violations": self.violations,
@@ -90,17 +97,48 @@ class Alternative:
             "choreography": self.choreography,
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> Alternative:
+        """Rebuild from ``to_dict`` output; KeyError/TypeError/ValueError on another shape."""
+        nodes = [str(n) for n in d["nodes"]]
+        return cls(
+            nodes=nodes,
+            index=np.asarray(d.get("index", []), dtype=np.int64).reshape(-1),
+            cost=float(d["cost"]),
+            per_bar=[dict(row) for row in d.get("per_bar", [])],
+            violations=[dict(v) for v in d.get("violations", [])],
+            placements=np.asarray(d.get("placements", []), dtype=float).reshape(-1, 3),
+            choreography=dict(d.get("choreography") or {}),
+        )
+
 
 @dataclass
 class SearchResult:
+    """A search's answer: the ranked ``alternatives``, the constraint ``report``, and which graph
+    (``graph_name``, ``graph_version``) answered it, so rendering uses that same version."""
+
     alternatives: list[Alternative]
     report: dict
+    graph_name: str = ""
+    graph_version: str = ""
 
     def to_dict(self) -> dict:
         return {
             "alternatives": [a.to_dict() for a in self.alternatives],
             "constraints": self.report,
+            "graph": {"name": self.graph_name, "version": self.graph_version},
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SearchResult:
+        """Rebuild from ``to_dict`` output; KeyError/TypeError/ValueError on another shape."""
+        graph = d.get("graph") or {}
+        return cls(
+            alternatives=[Alternative.from_dict(a) for a in d["alternatives"]],
+            report=dict(d.get("constraints") or {}),
+            graph_name=str(graph.get("name") or ""),
+            graph_version=str(graph.get("version") or ""),
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,6 +344,7 @@ def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: S
     distance to each common signature. One matrix product, then one fused pass (the hot path of
     a query).
     """
+    jit.ensure("search")
     w = spec.weights
     zm = zm.astype(np.float32)
     dot = zm @ np.asarray(graph.style, dtype=np.float32).T
@@ -405,9 +444,7 @@ def bar_terms(
 
 def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
-    from dancegraph import jit
-
-    jit.warm_up(music=False)  # compiles into the shared kernel cache only under its lock
+    jit.ensure("search")  # compiles into the shared kernel cache only under its lock
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
     zm, music = music_inputs(music, graph, analysis)
@@ -747,7 +784,9 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     report["variables"] = int(n_vars)
     report["bars"] = int(n_bars)
     report["music_style"] = music["style_source"]
-    return SearchResult(alternatives=alternatives, report=report)
+    return SearchResult(
+        alternatives=alternatives, report=report, graph_name=graph.name, graph_version=graph.version
+    )
 
 
 def edges_below(graph: MotionGraph, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1003,3 +1042,6 @@ def evaluate(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternati
     from dancegraph.graph.explain import breakdown
 
     return breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
+
+
+jit.register("search", warm_up)

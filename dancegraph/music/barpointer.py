@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dancegraph import jit
+
 __all__ = ["BarPointerParams", "MADMOM", "DEFAULT", "DecodedBeats", "decode", "warm_up"]
 
 
@@ -207,17 +209,17 @@ _LOCK = threading.Lock()
 
 
 def _kernel():
-    """The numba-compiled Viterbi kernel, compiled (or loaded from the disk cache) once."""
+    """The numba-compiled Viterbi kernel, compiled (or loaded from the disk cache) once, under
+    the kernel cache's lock (``jit.ensure``)."""
     global _KERNEL
     with _LOCK:
         if _KERNEL is None:
             import numba
 
-            from dancegraph import jit
-
             jit.configure_cache()  # decorated after this, the kernel caches in the project's folder
             _KERNEL = numba.njit(cache=True, nogil=True)(_viterbi_py)
-        return _KERNEL
+    jit.ensure("barpointer")
+    return _KERNEL
 
 
 _SPACES: dict[BarPointerParams, _Space] = {}
@@ -296,3 +298,6 @@ def warm_up() -> None:
     act = rng.uniform(0.0, 0.2, size=(200, 2))
     act[::25, 0] = 0.8
     decode(act, DEFAULT)
+
+
+jit.register("barpointer", warm_up)

@@ -81,6 +81,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from dancegraph import jit
 from dancegraph.errors import AudioError, ModelFileError
 from dancegraph.music import barpointer
 from dancegraph.music.bargroup import (
@@ -984,9 +985,7 @@ def track_beats(
             ``audio_too_long`` over 20 minutes (as :func:`~dancegraph.music.decode.load_audio`).
         ModelFileError: ``model_missing`` with ``method='beatnet'`` and no weights installed.
     """
-    from dancegraph import jit
-
-    jit.warm_up(search=False)  # compiles into the shared kernel cache only under its lock
+    jit.ensure("music")  # compiles into the shared kernel cache only under its lock
     y = np.asarray(y, dtype=np.float32)
     if y.ndim != 1:
         raise ValueError(f"track_beats needs mono audio (N,), got shape {y.shape}")
@@ -1226,8 +1225,9 @@ def _usable(
 
 
 def warm_up() -> None:
-    """Compile the decoder, load the models and run librosa's kernels once (call at worker
-    start, so the first song does not pay for compilation); never raises."""
+    """Compile the decoder, load the models and run librosa's kernels once, so the first song
+    does not pay for compilation; never raises. Registered as ``music`` with ``dancegraph.jit``,
+    which runs it under the kernel cache's lock."""
     barpointer.warm_up()
     try:
         from dancegraph.music.beatnet import load_model
@@ -1249,3 +1249,6 @@ def warm_up() -> None:
         track_beats(y, SR)
     except AudioError:
         pass
+
+
+jit.register("music", warm_up)

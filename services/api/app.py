@@ -14,12 +14,14 @@ from contextlib import asynccontextmanager
 from functools import cached_property
 
 from fastapi import FastAPI
+from fastapi.routing import APIRoute
 
 from dancegraph import __version__
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
-from services.api import metrics, problems
+from services.api import metrics
 from services.api.routers import batches, datasets, health, jobs, preview
+from services.common import problems
 from services.config import Settings, get_settings, object_store
 from services.preview_server import static_router
 
@@ -50,6 +52,13 @@ offending `field`; a failed job carries the same codes in `error`:
 | 503 | `preview_not_built` | the preview page's front end is not built on this server |
 
 Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`."""
+
+
+def operation_id(route: APIRoute) -> str:
+    """An operation's id in ``openapi.yaml``: its handler's name in camelCase (``create_job`` →
+    ``createJob``), so generated clients get short, stable function names."""
+    head, *rest = route.name.split("_")
+    return head + "".join(word.capitalize() for word in rest)
 
 
 class AppContext:
@@ -123,6 +132,7 @@ def create_app(
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        generate_unique_id_function=operation_id,
         openapi_tags=[
             {"name": "jobs", "description": "one song → dance alternatives"},
             {"name": "preview", "description": "watch a job's dance on its song in the browser"},

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from dancegraph.store import ObjectStore
 from services import jobs
 from services.api.preview_tokens import check_token
-from services.api.problems import ApiError
+from services.common.problems import ApiError
 from services.config import Settings
 from services.db import get_sessionmaker, session_scope
 from services.models import Tenant

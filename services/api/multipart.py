@@ -19,30 +19,11 @@ from pathlib import Path
 from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from services.api.problems import ApiError
+from services.common.problems import ApiError
+from services.common.uploads import FilePart
 
 MAX_TEXT_BYTES = 1 << 20  # a spec is small; anything bigger is a mistake
 MAX_TEXT_FIELDS = 16
-
-
-@dataclass
-class FilePart:
-    """One uploaded file part, already on disk in a temporary file."""
-
-    name: str
-    filename: str
-    path: Path
-    size: int = 0
-    sha256: str = ""
-
-    def read_text(self, limit: int) -> bytes | None:
-        """The file's bytes when at most ``limit`` long, else None."""
-        if self.size > limit:
-            return None
-        return self.path.read_bytes()
-
-    def discard(self) -> None:
-        self.path.unlink(missing_ok=True)
 
 
 @dataclass

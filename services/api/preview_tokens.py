@@ -10,7 +10,7 @@ import hashlib
 import hmac
 import time
 
-from services.api.problems import ApiError
+from services.common.problems import ApiError
 from services.config import Settings
 
 

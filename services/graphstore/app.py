@@ -13,7 +13,7 @@ Endpoints:
 
 - ``GET /v1/graphs`` → ``{items: [{name, version, graph_key, nodes, edges, embedding, ...}], next_cursor}``
 - ``GET /v1/graphs/{name}`` → version, stats, which embedding, build parameters, dataset
-- ``POST /v1/graphs/{name}/search`` ``{analysis, spec}`` → ``SearchResult.to_dict()`` + ``graph``
+- ``POST /v1/graphs/{name}/search`` ``{analysis, spec}`` → ``SearchResult.to_dict()``
 - ``GET /v1/graphs/{name}/skeleton`` → ``Skeleton.to_dict()``
 - ``GET /v1/graphs/{name}/nodes/{node_id}`` → provenance (take, bar, frames, augmentation)
 - ``GET /v1/graphs/{name}/nodes/{node_id}/motion`` → the bar's motion (fps, root, rotations)
@@ -32,10 +32,11 @@ from fastapi.responses import JSONResponse
 
 from dancegraph import __version__
 from dancegraph.errors import DanceGraphError
+from dancegraph.spec import parse_spec
 from dancegraph.store import ObjectStore
-from services.api.problems import install as install_problem_handlers
+from services.common.problems import install as install_problem_handlers
 from services.config import get_settings, object_store
-from services.graphstore.client import LocalGraphStore
+from services.graphstore.client import LocalGraphStore, parse_analysis
 
 log = logging.getLogger("dancegraph.graphstore")
 
@@ -49,9 +50,9 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         if warm_up:
             from dancegraph import jit
-            from dancegraph.graph import artifact
+            from dancegraph.graph import artifact, search  # noqa: F401  (registers its kernels)
 
-            jit.warm_up(music=False)
+            jit.warm_up(["search"])
             local = graphs()
             for name in artifact.list_graphs(local.store):
                 try:
@@ -94,8 +95,9 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
         analysis: dict = Body(..., description="MusicAnalysis.to_dict() of the song"),
         spec: dict | None = Body(None, description="the constraint spec (dancegraph.spec.Spec)"),
     ) -> JSONResponse:
-        result = graphs().search(name, analysis, spec or {})
-        return JSONResponse(_jsonable(result))
+        # the path's dataset wins over the spec's; both bodies are parsed once, here
+        result = graphs().search(parse_analysis(analysis), parse_spec(spec, dataset=name))
+        return JSONResponse(_jsonable(result.to_dict()))
 
     @app.get("/v1/graphs/{name}/skeleton")
     def skeleton(name: str) -> dict:

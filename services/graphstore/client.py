@@ -1,9 +1,10 @@
 """Graph-store clients: one interface, in-process (`LocalGraphStore`) or over HTTP (`HttpGraphStore`).
 
-The worker and the CLI talk to the graph store through :class:`GraphStoreClient`; the embedded
+The worker and the API talk to the graph store through :class:`GraphStoreClient`; the embedded
 default uses :class:`LocalGraphStore` (graphs loaded in this process from the object store), a
 production deployment :class:`HttpGraphStore` (the ``services.graphstore.app`` service). Both
-answer the same methods with the same JSON-able dicts and raise the same ``DanceGraphError`` codes
+answer the same typed methods (``MusicAnalysis`` and ``Spec`` in, ``SearchResult`` out; the HTTP
+client sends their JSON forms) and raise the same ``DanceGraphError`` codes
 (``unknown_dataset``, ``unknown_node``, ``spec_invalid``, ``analysis_invalid``, ...).
 """
 
@@ -13,18 +14,18 @@ import threading
 from abc import ABC, abstractmethod
 
 import numpy as np
-from pydantic import ValidationError
 
-from dancegraph.embed.learned import load_graph_models
 from dancegraph.errors import DanceGraphError, NotFoundError, SpecError
 from dancegraph.graph import artifact
+from dancegraph.graph.search import SearchResult
 from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.music.analysis import MusicAnalysis
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 
 
 class GraphStoreClient(ABC):
-    """What the worker and the CLI need from the graph store."""
+    """What the worker and the API need from the graph store."""
 
     @abstractmethod
     def list_graphs(self) -> list[dict]:
@@ -35,11 +36,9 @@ class GraphStoreClient(ABC):
         """One graph: version, build parameters, stats, which embedding, the dataset it was built from."""
 
     @abstractmethod
-    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
-        """Paths through ``dataset``'s graph for a song (``MusicAnalysis.to_dict()``) and a spec.
-
-        Returns ``SearchResult.to_dict()`` plus ``graph: {name, version}`` (the version searched).
-        """
+    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
+        """Paths through the graph of ``spec.dataset`` for a song's analysis; the result names
+        the graph version it was searched on (``graph_name``, ``graph_version``)."""
 
     @abstractmethod
     def node(self, dataset: str, node_id: str) -> dict:
@@ -54,25 +53,9 @@ class GraphStoreClient(ABC):
         """The node's bar as motion (frames spread evenly over the source bar's length)."""
 
 
-def parse_spec(dataset: str, spec: dict | Spec | None) -> Spec:
-    """Validate ``spec`` for a search of ``dataset`` (the path's dataset wins over the spec's)."""
-    if isinstance(spec, Spec):
-        data = spec.model_dump(mode="json")
-    else:
-        data = dict(spec or {})
-    data["dataset"] = dataset
-    try:
-        return Spec.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        field = "spec." + ".".join(str(p) for p in err.get("loc", ())) if err.get("loc") else "spec"
-        code = "spec_unknown_field" if err.get("type") == "extra_forbidden" else "spec_invalid"
-        raise SpecError(f"{field}: {err.get('msg')}", code=code, field=field) from exc
-
-
-def _analysis_from(data: dict):
-    from dancegraph.music.analysis import MusicAnalysis
-
+def parse_analysis(data: object) -> MusicAnalysis:
+    """A ``MusicAnalysis.to_dict()`` object sent over HTTP, checked; DanceGraphError
+    ``analysis_invalid`` (422) naming what is wrong."""
     if not isinstance(data, dict):
         raise DanceGraphError(
             "analysis must be a JSON object", code="analysis_invalid", field="analysis"
@@ -116,8 +99,7 @@ class LocalGraphStore(GraphStoreClient):
             cached = self._graphs.get(name)
             if cached is not None and cached.version == version:
                 return cached
-        loaded = artifact.load_graph(artifact.graph_folder(self.store, name, version))
-        load_graph_models(loaded)  # a bad model file fails here, not in a job
+        loaded = artifact.open_graph(self.store, name, version)
         with self._lock:
             self._graphs[name] = loaded
         return loaded
@@ -128,16 +110,7 @@ class LocalGraphStore(GraphStoreClient):
             cached = self._graphs.get(name)
         if cached is not None and cached.version == version:
             return cached
-        try:
-            loaded = artifact.load_graph(artifact.graph_folder(self.store, name, version))
-        except (ValueError, NotFoundError) as exc:
-            raise NotFoundError(
-                f"dataset {name!r} has no graph version {version!r}",
-                code="unknown_graph_version",
-                field="version",
-            ) from exc
-        load_graph_models(loaded)
-        return loaded
+        return artifact.open_graph(self.store, name, version)
 
     def loaded(self) -> dict[str, str]:
         with self._lock:
@@ -176,15 +149,10 @@ class LocalGraphStore(GraphStoreClient):
         )
         return info
 
-    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
+    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
         from dancegraph.graph.search import search
 
-        graph = self.graph(dataset)
-        parsed_spec = parse_spec(dataset, spec)
-        parsed_analysis = _analysis_from(analysis)
-        result = search(graph, parsed_analysis, parsed_spec).to_dict()
-        result["graph"] = {"name": graph.name, "version": graph.version}
-        return result
+        return search(self.graph(spec.dataset), analysis, spec)
 
     def _node_index(self, graph: artifact.MotionGraph, node_id: str) -> int:
         try:
@@ -303,10 +271,18 @@ class HttpGraphStore(GraphStoreClient):
     def graph_info(self, name: str) -> dict:
         return self._call("GET", f"/v1/graphs/{name}")
 
-    def search(self, dataset: str, analysis: dict, spec: dict) -> dict:
-        return self._call(
-            "POST", f"/v1/graphs/{dataset}/search", json={"analysis": analysis, "spec": spec}
-        )
+    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
+        body = {"analysis": analysis.to_dict(), "spec": spec.model_dump(mode="json")}
+        data = self._call("POST", f"/v1/graphs/{spec.dataset}/search", json=body)
+        try:
+            return SearchResult.from_dict(data)
+        except (KeyError, TypeError, ValueError) as exc:
+            err = DanceGraphError(
+                f"the graph store at {self.base_url} answered a search with another shape: {exc!r}",
+                code="graphstore_invalid_answer",
+            )
+            err.status = 502
+            raise err from exc
 
     def node(self, dataset: str, node_id: str) -> dict:
         return self._call("GET", f"/v1/graphs/{dataset}/nodes/{node_id}")

@@ -136,7 +136,7 @@ def _warm_up(**_kwargs) -> None:
 
         log = logging.getLogger("dancegraph.worker")
         try:
-            jit.warm_up()
+            jit.warm_kernels()
         except Exception:  # a job still compiles on demand; the log says why start-up was slow
             log.exception("kernel warm-up failed")
         else:

@@ -29,12 +29,15 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 from dancegraph.errors import AudioError, DanceGraphError
-from dancegraph.spec import Spec
+from dancegraph.graph.search import SearchResult
+from dancegraph.music.analysis import MusicAnalysis
+from dancegraph.spec import Spec, parse_spec
 from dancegraph.store import ObjectStore
 from services import jobs
 from services.config import Settings, get_settings
 from services.config import object_store as settings_store
 from services.db import session_scope
+from services.graphstore.client import GraphStoreClient
 from services.models import SUCCEEDED
 from services.worker import state
 
@@ -67,68 +70,58 @@ def analysis_key(audio_sha256: str) -> str:
 
 def analyze(
     store: ObjectStore, audio_key: str, audio_sha256: str, filename: str | None = None
-) -> dict:
-    """The song's analysis (``MusicAnalysis.to_dict()``), computed once per sha256 and cached.
-
-    An audio error names ``filename`` (the name the client uploaded), not the stored blob.
-    """
+) -> MusicAnalysis:
+    """The song's analysis, computed once per sha256 and cached as ``MusicAnalysis.to_dict()``;
+    always returned as read back from that JSON, so a first run and a re-run see the same
+    numbers. An audio error names ``filename`` (the name the client uploaded), not the blob."""
     key = analysis_key(audio_sha256)
     if store.exists(key):
-        return json.loads(store.get_bytes(key))
-    from dancegraph.music.analysis import analyze as analyze_music
+        data = json.loads(store.get_bytes(key))
+    else:
+        from dancegraph.music.analysis import analyze as analyze_music
 
-    path = store.local_path(audio_key)
-    try:
-        analysis = analyze_music(str(path))
-    except AudioError as exc:
-        if filename:
-            exc.message = exc.message.replace(path.name, filename)
-            exc.args = (exc.message,)
-            exc.field = "audio"
-        raise
-    data = analysis.to_dict()
-    store.put_bytes(key, json.dumps(data).encode("utf-8"))
-    return data
-
-
-def analysis_summary(data: dict) -> dict:
-    """The short analysis summary the job status carries."""
-    from dancegraph.music.analysis import MusicAnalysis
-
-    return MusicAnalysis.from_dict(data).summary()
+        path = store.local_path(audio_key)
+        try:
+            data = analyze_music(str(path)).to_dict()
+        except AudioError as exc:
+            if filename:
+                exc.message = exc.message.replace(path.name, filename)
+                exc.args = (exc.message,)
+                exc.field = "audio"
+            raise
+        store.put_bytes(key, json.dumps(data).encode("utf-8"))
+    return MusicAnalysis.from_dict(data)
 
 
-def with_learned_terms(store: ObjectStore, audio_key: str, analysis: dict, dataset: str) -> dict:
+def with_learned_terms(
+    store: ObjectStore, audio_key: str, analysis: MusicAnalysis, dataset: str
+) -> MusicAnalysis:
     """``analysis`` plus the music terms of the dataset's current graph's learned models (E_M
     style of the uploaded audio, rhythm top-3; ``embed.learned.add_music_terms``), so the search
     need not fall back to the descriptor bridge; ``analysis`` itself for a descriptor graph.
     Computed per job (about a second for a 3-min song), not cached: the cached analysis stays
     what the audio alone gives."""
     from dancegraph.embed.learned import add_music_terms
-    from dancegraph.music.analysis import MusicAnalysis
 
     try:
         graph = load_graph(store, dataset)
     except DanceGraphError:
         return analysis  # no such graph: the search stage names the problem
-    parsed = MusicAnalysis.from_dict(analysis)
-    added = add_music_terms(parsed, graph, str(store.local_path(audio_key)))
-    return analysis if added is parsed else added.to_dict()
+    return add_music_terms(analysis, graph, str(store.local_path(audio_key)))
 
 
-def search(settings: Settings, store: ObjectStore, spec: dict, analysis: dict) -> dict:
-    """Graph search through the graph-store client (``SearchResult.to_dict()``)."""
-    client = graphstore_client(settings)
-    return client.search(spec.get("dataset", Spec().dataset), analysis, spec)
+def search(settings: Settings, spec: Spec, analysis: MusicAnalysis) -> SearchResult:
+    """Graph search of ``spec.dataset`` through the graph-store client."""
+    return graphstore_client(settings).search(analysis, spec)
 
 
-def graphstore_client(settings: Settings):
+def graphstore_client(settings: Settings) -> GraphStoreClient:
     """LocalGraphStore (in-process) when ``graphstore_url`` is 'local', else HttpGraphStore."""
     return _graphstore_client(settings.graphstore_url, object_store(settings))
 
 
 @lru_cache(maxsize=4)
-def _graphstore_client(url: str, store: ObjectStore):
+def _graphstore_client(url: str, store: ObjectStore) -> GraphStoreClient:
     from services.graphstore.client import HttpGraphStore, LocalGraphStore
 
     if url == "local":
@@ -153,32 +146,32 @@ def _load_graph(store: ObjectStore, name: str, version: str):
 
 
 def render(
-    settings: Settings, store: ObjectStore, job_id: str, spec: dict, analysis: dict, found: dict
+    store: ObjectStore,
+    job_id: str,
+    spec: Spec,
+    analysis: MusicAnalysis,
+    found: SearchResult,
+    audio: dict[str, str] | None = None,
 ) -> list[str]:
     """Render BVH + timeline and publish them at ``jobs/<job_id>/``; returns the file names.
 
-    FBX is not written here: it is the ``fbx`` queue's work (a warm Blender per worker).
+    ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
+    ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
+    queue's work (a warm Blender per worker).
     """
     if store.published(jobs.result_key(job_id)) is not None:
         return list_result_files(store, job_id)
-    from dancegraph.music.analysis import MusicAnalysis
     from dancegraph.render import render as render_motion
 
-    bvh_spec = Spec.model_validate(spec)
-    bvh_spec = bvh_spec.model_copy(
-        update={"output": bvh_spec.output.model_copy(update={"formats": ["bvh"]})}
+    bvh_spec = spec.model_copy(
+        update={"output": spec.output.model_copy(update={"formats": ["bvh"]})}
     )
-    graph = load_graph(store, bvh_spec.dataset, (found.get("graph") or {}).get("version"))
+    graph = load_graph(store, spec.dataset, found.graph_version or None)
     tmp = store.temp_dir(f"job-{job_id}")
     try:
-        render_motion(
-            graph,
-            MusicAnalysis.from_dict(analysis),
-            found,
-            bvh_spec,
-            tmp,
-        )
-        (tmp / SEARCH_FILE).write_text(json.dumps(found))
+        extra = {"audio": audio} if audio else None
+        render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra)
+        (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         # False: another worker published first; its complete result stands
         store.publish(jobs.result_key(job_id), tmp)
     finally:
@@ -213,8 +206,8 @@ def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None) -> lis
     return list_result_files(store, job_id)
 
 
-def wants_fbx(spec: dict) -> bool:
-    return "fbx" in Spec.model_validate(spec).output.formats
+def wants_fbx(spec: Spec) -> bool:
+    return "fbx" in spec.output.formats
 
 
 def finalize(store: ObjectStore, job_id: str) -> bool:
@@ -254,6 +247,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     if job is None:
         log.info("not claimed (final, or held by a live worker)", extra={"job_id": job_id})
         return RunOutcome("skipped")
+    spec = parse_spec(job.spec)  # the task's entry: parsed once, passed on as the model
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
@@ -262,15 +256,15 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         with session_scope() as session:
             _set_summary(session, job_id, analysis)
         state.progress(job_id, "search", STAGES["search"])
-        dataset = job.spec.get("dataset", Spec().dataset)
-        terms = with_learned_terms(store, job.audio_key, analysis, dataset)
-        found = search(settings, store, job.spec, terms)
+        terms = with_learned_terms(store, job.audio_key, analysis, spec.dataset)
+        found = search(settings, spec, terms)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
-        files = render(settings, store, job_id, job.spec, analysis, found)
+        source = {"file": job.audio_filename, "sha256": job.audio_sha256}
+        files = render(store, job_id, spec, analysis, found, source)
         beat.check()
         done = jobs.result_files(store, job_id)
-        if wants_fbx(job.spec) and not all(
+        if wants_fbx(spec) and not all(
             n[: -len(".bvh")] + ".fbx" in done for n in jobs.bvh_files(store, job_id)
         ):
             state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
@@ -297,14 +291,14 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
             beat.check()
             state.progress(job_id, "fbx", STAGES["fbx"] + span * (i + 1) / n)
 
-        fps = float(Spec.model_validate(job.spec).output.fps)
+        fps = float(parse_spec(job.spec).output.fps)
         files = export_fbx(store, job_id, fps, on_file)
         state.progress(job_id, "finalize", STAGES["finalize"])
     finalize(store, job_id)
     return RunOutcome("succeeded", files)
 
 
-def _set_summary(session, job_id: str, analysis: dict) -> None:
+def _set_summary(session, job_id: str, analysis: MusicAnalysis) -> None:
     from sqlalchemy import update
 
     from services.models import Job
@@ -312,6 +306,6 @@ def _set_summary(session, job_id: str, analysis: dict) -> None:
     session.execute(
         update(Job)
         .where(Job.id == job_id)
-        .values(analysis_summary=analysis_summary(analysis))
+        .values(analysis_summary=analysis.summary())
         .execution_options(synchronize_session=False)
     )

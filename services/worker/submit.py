@@ -2,8 +2,8 @@
 
 A pipeline that already speaks Celery can skip HTTP: it sends ``dancegraph.submit`` with a spec,
 an audio file and a tenant, and the job it creates is the same as one made by ``POST /v1/jobs``:
-the same checks (the API's own functions: spec schema, known dataset, size, container sniffing,
-duration limits), the same row, the same queue, the same results and webhook.
+the same checks (the functions the API calls: ``dancegraph.spec.parse_spec``, known dataset,
+size, container sniffing, duration limits; ``services.common``), the same row, the same queue, the same results and webhook.
 
 Where the outcome lands: the ``jobs`` row whose id is the ``job_id`` argument (a UUID the caller
 chooses, so it can poll ``GET /v1/jobs/{job_id}`` right away). A submission refused by the checks
@@ -21,9 +21,11 @@ from sqlalchemy import select
 from starlette.datastructures import UploadFile
 
 from dancegraph.errors import DanceGraphError
-from dancegraph.spec import Spec
+from dancegraph.spec import check_json_value, parse_spec
 from dancegraph.store import InvalidKeyError, check_key
 from services import jobs
+from services.common.submit import check_callback, check_dataset
+from services.common.uploads import check_audio
 from services.config import Settings, get_settings
 from services.db import session_scope
 from services.models import Job, Tenant
@@ -43,15 +45,6 @@ def _tenant_id(session, tenant: str) -> str:
     if row is None:
         raise SubmitError(f"no tenant {tenant!r}", code="unknown_tenant", field="tenant")
     return row.id
-
-
-def _spec(spec: object) -> Spec:
-    """The API's own spec check (``services.api.uploads.validate_spec``): same codes, fields."""
-    from services.api.uploads import validate_spec
-
-    if not isinstance(spec, str | dict):
-        raise SubmitError("spec must be a JSON object", code="spec_malformed", field="spec")
-    return validate_spec(spec)
 
 
 def _audio_path(settings: Settings, audio: str) -> Path:
@@ -96,9 +89,6 @@ def submit(
     the id to give the job (default: a new UUID); ``idempotency_key``: as the API header — a
     second submission with the same key returns the first job and creates nothing.
     """
-    from services.api.submit import check_callback, check_dataset
-    from services.api.uploads import check_audio
-
     settings = settings or get_settings()
     job_id = str(uuid.UUID(job_id)) if job_id else str(uuid.uuid4())
     store = pipeline.object_store(settings)
@@ -110,7 +100,7 @@ def submit(
                 raise SubmitError(f"job id {job_id} is taken", code="job_id_taken", field="job_id")
             return existing.id  # a redelivered submit: the job exists already
     try:
-        parsed = _spec(spec)
+        parsed = parse_spec(spec)
         check_callback(settings, parsed)
         check_dataset(settings, parsed, pipeline.graphstore_client(settings))
         path = _audio_path(settings, audio)
@@ -153,8 +143,6 @@ def submit(
 def _storable(spec: object) -> dict:
     """The refused spec as the failed row keeps it: itself when PostgreSQL's JSON type can hold
     it, else an escaped excerpt of its text (no NUL, surrogate or non-finite number)."""
-    from services.api.uploads import check_json_value
-
     if isinstance(spec, dict):
         try:
             check_json_value(spec)

@@ -311,6 +311,8 @@ def test_search_uses_the_e_m_styles_the_analysis_carries(learned_graph, song, de
     from dancegraph.embed.learned import add_music_terms
     from dancegraph.errors import SpecError
     from dancegraph.graph.search import _music_arrays, music_style
+    from dancegraph.music.analysis import MusicAnalysis
+    from dancegraph.spec import parse_spec
     from services.graphstore.client import LocalGraphStore
 
     path, analysis = song
@@ -325,11 +327,12 @@ def test_search_uses_the_e_m_styles_the_analysis_carries(learned_graph, song, de
     z_b = music_style(_music_arrays(analysis), g, analysis)
     assert np.allclose(z_e, full.learned_style[sha]) and not np.allclose(z_e, z_b, atol=1e-3)
 
-    # through the graph store, as JSON (the HTTP path carries the same dict)
+    # through the graph store, after a JSON round trip (the HTTP path carries the same dict)
     store = LocalGraphStore(demo_store)
-    spec = {"alternatives": 1}
-    with_e_m = store.search("demo", json.loads(json.dumps(full.to_dict())), spec)
-    bridged = store.search("demo", analysis.to_dict(), spec)
+    spec = parse_spec({"alternatives": 1}, dataset="demo")
+    sent = MusicAnalysis.from_dict(json.loads(json.dumps(full.to_dict())))
+    with_e_m = store.search(sent, spec).to_dict()
+    bridged = store.search(analysis, spec).to_dict()
     src = with_e_m["constraints"]["music_style"]
     assert src["style"] == "e_m" and src["style_model"] == g.manifest["embedding"]["version"]
     assert src["signatures"] == "rhythm_model"
@@ -342,12 +345,10 @@ def test_search_uses_the_e_m_styles_the_analysis_carries(learned_graph, song, de
 
     # styles of another model are not used; a wrong shape is refused with its code
     other = dataclasses.replace(analysis, learned_style={"0" * 64: full.learned_style[sha]})
-    assert store.search("demo", other.to_dict(), spec)["constraints"]["music_style"]["style"] == (
-        "bridge"
-    )
+    assert store.search(other, spec).report["music_style"]["style"] == "bridge"
     bad = dataclasses.replace(analysis, learned_style={sha: full.learned_style[sha][:-1]})
     with pytest.raises(SpecError) as exc:
-        store.search("demo", bad.to_dict(), spec)
+        store.search(bad, spec)
     assert exc.value.code == "analysis_invalid"
     # the analysis without learned terms serialises as before (the cache by audio hash holds)
     assert "learned_style" not in analysis.to_dict()
@@ -367,8 +368,7 @@ def test_synthesize_and_the_job_path_compute_the_learned_terms(
     assert done["search"]["constraints"]["music_style"]["style"] == "e_m"
 
     demo_store.put_file("uploads/song.wav", path)
-    data = analysis.to_dict()
-    job = with_learned_terms(demo_store, "uploads/song.wav", data, "demo")
-    assert np.asarray(job["learned_style"][sha]).shape == (analysis.n_bars, 32)
-    assert "learned_style" not in data
-    assert with_learned_terms(demo_store, "uploads/song.wav", data, "nope") is data
+    job = with_learned_terms(demo_store, "uploads/song.wav", analysis, "demo")
+    assert job.learned_style[sha].shape == (analysis.n_bars, 32)
+    assert not analysis.learned_style
+    assert with_learned_terms(demo_store, "uploads/song.wav", analysis, "nope") is analysis

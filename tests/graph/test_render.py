@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dancegraph.errors import DanceGraphError
-from dancegraph.graph.search import search
+from dancegraph.graph.search import SearchResult, search
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fbx import fbx_available
@@ -156,19 +156,17 @@ def test_fbx_per_alternative(demo_graph, analysis, tmp_path):
 
 def test_bad_paths_are_clear_errors(demo_graph, analysis, rendered, tmp_path: Path):
     _, _, found, spec = rendered
-    short = {
-        "alternatives": [
-            dict(found["alternatives"][0], nodes=found["alternatives"][0]["nodes"][:-1])
-        ]
-    }
+    alt = found["alternatives"][0]
+    short = SearchResult.from_dict({"alternatives": [dict(alt, nodes=alt["nodes"][:-1])]})
     with pytest.raises(DanceGraphError) as err:
         render(demo_graph, analysis, short, spec, tmp_path)
     assert err.value.code == "render_mismatch"
-    alt = found["alternatives"][0]
-    bogus = {"alternatives": [dict(alt, nodes=["nope:1"] + alt["nodes"][1:])]}
+    bogus = SearchResult.from_dict(
+        {"alternatives": [dict(alt, nodes=["nope:1"] + alt["nodes"][1:])]}
+    )
     with pytest.raises(DanceGraphError) as err:
         render(demo_graph, analysis, bogus, spec, tmp_path)
     assert err.value.code == "unknown_node" and err.value.field == "nodes[0]"
     with pytest.raises(DanceGraphError) as err:
-        render(demo_graph, analysis, {"alternatives": []}, spec, tmp_path)
+        render(demo_graph, analysis, SearchResult([], {}), spec, tmp_path)
     assert err.value.code == "render_empty"

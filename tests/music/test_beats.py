@@ -964,13 +964,15 @@ def test_decoder_meters_and_empty_input() -> None:
     assert len(empty.times) == 0
 
 
-def test_numba_kernel_is_cached_under_dancegraph_home(tmp_path: Path) -> None:
+def test_numba_kernel_is_cached_in_the_per_user_cache_folder(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")  # platformdirs' per-user cache on Linux
     env["DANCEGRAPH_HOME"] = str(tmp_path / "home")
     code = "from dancegraph.music import barpointer; barpointer.warm_up()"
     subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=300)
-    cached = list((tmp_path / "home" / "numba_cache").rglob("*.nbi"))
+    cached = list((tmp_path / "cache" / "dancegraph" / "numba").rglob("*.nbi"))
     assert cached, "warm_up() left no numba cache index"
+    assert not (tmp_path / "home" / "numba_cache").exists()
 
 
 # --- tempo -----------------------------------------------------------------------------------

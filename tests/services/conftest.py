@@ -252,8 +252,8 @@ def register_dataset(settings, name: str = TEST_DATASET) -> None:
 def _make_api(settings) -> Iterator[ApiClient]:
     from fastapi.testclient import TestClient
 
-    from services.api import catalog
     from services.api.app import create_app
+    from services.common import catalog
 
     catalog.reset()
     register_dataset(settings)

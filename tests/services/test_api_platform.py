@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -99,6 +100,23 @@ def test_openapi_yaml_matches_the_app():
         timeout=120,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr
+
+
+def test_operation_ids_are_clean_and_unique():
+    """A generated client gets functions named createJob, downloadAlternative, ... (not FastAPI's
+    create_job_v1_jobs_post)."""
+    from services.api.app import create_app
+
+    ids = [
+        op["operationId"]
+        for item in create_app().openapi()["paths"].values()
+        for op in item.values()
+        if isinstance(op, dict) and "operationId" in op
+    ]
+    assert len(ids) == len(set(ids))
+    assert all(re.fullmatch(r"[a-z]+(?:[A-Z][a-z0-9]*)*", i) for i in ids), ids
+    assert {"createJob", "getJob", "listJobs", "cancelJob", "downloadAlternative"} <= set(ids)
+    assert {"createBatch", "getBatch", "listDatasets", "getDataset"} <= set(ids)
 
 
 def test_openapi_check_detects_drift(tmp_path):

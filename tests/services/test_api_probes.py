@@ -68,7 +68,7 @@ def _job_count(settings) -> int:
 
 
 def test_thirty_concurrent_uploads_are_accepted_or_told_to_retry(make_settings, pg_url):
-    from services.api import catalog
+    from services.common import catalog
     from services.api.app import create_app
     from tests.services.conftest import _new_key
 
@@ -117,7 +117,7 @@ def test_thirty_concurrent_uploads_are_accepted_or_told_to_retry(make_settings, 
 def test_callback_urls_at_internal_addresses_are_refused(make_settings, pg_url, url, song_wav):
     from fastapi.testclient import TestClient
 
-    from services.api import catalog
+    from services.common import catalog
     from services.api.app import create_app
     from tests.services.conftest import ApiClient, _new_key
 
@@ -179,7 +179,7 @@ def test_a_spec_with_an_integer_where_a_float_goes_is_fine(api, song_wav):
 def test_a_refused_enqueue_keeps_no_song(make_settings, pg_url):
     from fastapi.testclient import TestClient
 
-    from services.api import catalog
+    from services.common import catalog
     from services.api.app import create_app
     from tests.services.conftest import ApiClient, _new_key
 

@@ -14,9 +14,11 @@ from fastapi.testclient import TestClient
 
 from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import artifact
+from dancegraph.graph.search import SearchResult
 from dancegraph.motion.dataset import load_dataset
-from dancegraph.music.analysis import analyze
+from dancegraph.music.analysis import MusicAnalysis, analyze
 from dancegraph.music.generator import generate_song
+from dancegraph.spec import parse_spec
 from dancegraph.store import FileStore, ObjectStore
 from services.graphstore.app import create_app
 from services.graphstore.client import HttpGraphStore, LocalGraphStore
@@ -130,11 +132,13 @@ def test_http_and_local_clients_agree(client: TestClient, store: ObjectStore, an
     local = LocalGraphStore(store)
     assert http.list_graphs() == local.list_graphs()
     assert http.graph_info("demo")["version"] == local.graph_info("demo")["version"]
-    spec = {"alternatives": 1, "seed": 3}
+    song = MusicAnalysis.from_dict(analysis)
+    spec = parse_spec({"alternatives": 1, "seed": 3}, dataset="demo")
+    over_http, in_process = http.search(song, spec), local.search(song, spec)
     assert (
-        http.search("demo", analysis, spec)["alternatives"]
-        == local.search("demo", analysis, spec)["alternatives"]
+        isinstance(over_http, SearchResult) and over_http.graph_version == in_process.graph_version
     )
+    assert over_http.to_dict() == in_process.to_dict()
     node_id = local.graph("demo").node_ids[5]
     assert http.node("demo", node_id) == local.node("demo", node_id)
     assert http.skeleton("demo") == local.skeleton("demo")
@@ -147,9 +151,15 @@ def test_http_and_local_clients_agree(client: TestClient, store: ObjectStore, an
         with pytest.raises(NotFoundError) as err:
             c.graph_info("missing")
         assert err.value.code == "unknown_dataset"
+        with pytest.raises(NotFoundError) as err:
+            c.search(song, parse_spec({"recreate": "nope_99"}, dataset="demo"))
+        assert err.value.code == "unknown_node" and err.value.field == "recreate"
         with pytest.raises(SpecError) as err:
-            c.search("demo", analysis, {"stage": {"x": [1, -1], "z": [0, 1]}})
-        assert err.value.field.startswith("spec.stage")
+            c.search(song, parse_spec({"motifs": [{"bar": 999, "motif": 0}]}, dataset="demo"))
+        assert err.value.code == "constraint_conflict" and err.value.field == "motifs[0].bar"
+        with pytest.raises(NotFoundError) as err:
+            c.search(song, parse_spec({}, dataset="missing"))
+        assert err.value.code == "unknown_dataset"
 
 
 def test_new_version_loads_while_old_keeps_answering(store: ObjectStore, tmp_path: Path):

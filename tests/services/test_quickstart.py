@@ -13,7 +13,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fastapi.testclient import TestClient
+
 from dancegraph.motion.bvh import read_bvh
+from services.preview_server import create_local_app
 
 
 def test_quickstart_without_shared_data(tmp_path: Path):
@@ -50,7 +53,15 @@ def test_quickstart_without_shared_data(tmp_path: Path):
     assert f"results in {out}" in done.stdout
     timeline = json.loads((out / "timeline.json").read_text())
     assert len(timeline["alternatives"]) == 2
-    for k in (0, 1):
-        motion = read_bvh(out / f"{k}.bvh")
+    for k in (0, 1):  # the layout `dancegraph synthesize` writes
+        motion = read_bvh(out / "alternatives" / f"{k}.bvh")
         assert motion.n_frames > 30 * 10  # the synthesised song lasts well over 10 s
-    assert not (out / "0.fbx").exists()  # only the formats asked for
+    assert not (out / "alternatives" / "0.fbx").exists()  # only the formats asked for
+
+    # the README's next step, `dancegraph preview out/`, finds the dance and the song
+    preview = TestClient(create_local_app(out))
+    for k in (0, 1):
+        poses = preview.get(f"/poses/{k}.json")
+        assert poses.status_code == 200 and poses.json()["frames"] == motion.n_frames
+    song = preview.get("/audio")
+    assert song.status_code == 200 and song.content[:4] == b"RIFF"

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 
 from dancegraph.store import ObjectStore
 from services import jobs
+from services.api import metrics
 from services.api.deps import (
     get_db,
     get_enqueue,
@@ -18,11 +19,11 @@ from services.api.deps import (
     get_store,
     get_tenant,
 )
+from services.api.forms import audio_parts, form_spec, read_multipart
 from services.api.routers.jobs import PROBLEM, IdempotencyKey
 from services.api.schemas import BatchOut
-from services.api.submit import submit_batch
-from services.api.uploads import audio_parts, parse_spec, read_multipart
 from services.api.views import batch_out
+from services.common.submit import submit_batch
 from services.config import Settings
 from services.models import Tenant
 
@@ -82,7 +83,7 @@ async def create_batch(
 ):
     form = await read_multipart(request, settings, store, max_audio=settings.max_batch_items)
     try:
-        spec = parse_spec(form, settings)
+        spec = form_spec(form)
         parts = audio_parts(form)
         batch, rows, created = await run_in_threadpool(
             submit_batch,
@@ -97,6 +98,9 @@ async def create_batch(
         )
     finally:
         form.discard()
+    if created:
+        metrics.JOBS_CREATED.inc(len(rows))
+        metrics.UPLOAD_BYTES.inc(sum(j.audio_bytes or 0 for j in rows))
     body = batch_out(settings, batch, rows)
     return JSONResponse(
         jsonable_encoder(body), status_code=202 if created else 200, headers={"Location": body.url}

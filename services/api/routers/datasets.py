@@ -8,11 +8,11 @@ from fastapi import APIRouter, Depends
 from sqlalchemy.orm import Session
 
 from services import jobs
-from services.api import catalog
 from services.api.deps import get_db, get_graphstore, get_tenant
-from services.api.problems import ApiError
 from services.api.routers.jobs import PROBLEM
 from services.api.schemas import DatasetList, DatasetOut
+from services.common import catalog
+from services.common.problems import ApiError
 from services.models import Dataset, Tenant
 
 DATASET_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")  # as Spec.dataset

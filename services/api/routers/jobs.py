@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from dancegraph.store import ObjectStore
 from services import jobs
+from services.api import metrics
 from services.api.deps import (
     get_db,
     get_enqueue,
@@ -23,11 +24,11 @@ from services.api.deps import (
     get_store,
     get_tenant,
 )
-from services.api.problems import ApiError
+from services.api.forms import audio_parts, form_spec, read_multipart
 from services.api.schemas import JobOut, JobPage, JobStatus
-from services.api.submit import submit_job
-from services.api.uploads import audio_parts, parse_spec, read_multipart
 from services.api.views import job_out, job_url
+from services.common.problems import ApiError
+from services.common.submit import submit_job
 from services.config import Settings
 from services.models import CANCELLED, FAILED, SUCCEEDED, Tenant
 
@@ -125,7 +126,7 @@ async def create_job(
 ):
     form = await read_multipart(request, settings, store, max_audio=1)
     try:
-        spec = parse_spec(form, settings)
+        spec = form_spec(form)
         parts = audio_parts(form)
         if len(parts) != 1:
             raise ApiError(
@@ -147,6 +148,9 @@ async def create_job(
         )
     finally:
         form.discard()
+    if created:
+        metrics.JOBS_CREATED.inc()
+        metrics.UPLOAD_BYTES.inc(job.audio_bytes or 0)
     body = jsonable_encoder(job_out(settings, job))
     return JSONResponse(
         body, status_code=202 if created else 200, headers={"Location": job_url(settings, job.id)}

@@ -20,9 +20,9 @@ from dancegraph.store import ObjectStore
 from services import jobs
 from services.api.deps import get_db, get_settings_dep, get_store, get_tenant_or_preview_token
 from services.api.preview_tokens import make_token
-from services.api.problems import ApiError
 from services.api.routers.jobs import PROBLEM, require_succeeded, result_response
 from services.api.views import job_url
+from services.common.problems import ApiError
 from services.config import Settings
 from services.models import Job, Tenant
 from services.preview_server import (

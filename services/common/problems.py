@@ -1,4 +1,4 @@
-"""RFC 9457 problem details for every error the API answers.
+"""RFC 9457 problem details for every error the API and the graph store answer.
 
 Every problem carries a stable ``code`` and, where one input is at fault, ``field`` (``audio``,
 ``spec.alternatives``, ``query.limit``, ``header.Idempotency-Key``, ``job_id`` …). Validation
@@ -13,11 +13,11 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field
 from sqlalchemy import exc as sa_exc
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from dancegraph.errors import DanceGraphError
+from dancegraph.errors import DanceGraphError, field_errors
 
 log = logging.getLogger("dancegraph.api")
 
@@ -57,10 +57,9 @@ class ApiError(DanceGraphError):
         headers: dict | None = None,
         errors: list[dict] | None = None,
     ):
-        super().__init__(message, code=code, field=field)
+        super().__init__(message, code=code, field=field, errors=errors)
         self.status = status
         self.headers = headers or {}
-        self.errors = errors
 
 
 _TITLES = {
@@ -104,39 +103,6 @@ def problem_response(
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
-def _loc_to_field(loc: tuple | list, prefix: str | None = None) -> str:
-    parts = [str(p) for p in loc if p != "body" or prefix is None]
-    if prefix:
-        parts = [prefix, *parts]
-    out = ""
-    for p in parts:
-        if p.isdigit() and out:
-            out += f"[{p}]"
-        else:
-            out += ("." if out else "") + p
-    return out or (prefix or "request")
-
-
-def validation_errors(
-    exc: ValidationError | RequestValidationError, prefix: str | None = None
-) -> list[dict]:
-    """Pydantic errors as ``[{field, code, message}]``; unknown fields get ``*_unknown_field``."""
-    out = []
-    for err in exc.errors():
-        kind = err.get("type", "invalid")
-        field = _loc_to_field(err.get("loc", ()), prefix)
-        out.append({"field": field, "code": kind, "message": str(err.get("msg", "invalid value"))})
-    return out
-
-
-def spec_problem_code(errors: list[dict]) -> str:
-    return (
-        "spec_unknown_field"
-        if any(e["code"] == "extra_forbidden" for e in errors)
-        else "spec_invalid"
-    )
-
-
 def install(app: FastAPI) -> None:
     """Register the handlers that turn every error into problem+json."""
 
@@ -158,7 +124,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        errors = validation_errors(exc)
+        errors = field_errors(exc.errors())
         first = errors[0] if errors else {"field": "request", "message": "invalid request"}
         return problem_response(
             422,

@@ -12,10 +12,9 @@ from starlette.datastructures import UploadFile
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
 from services import jobs, webhooks
-from services.api import catalog
-from services.api.metrics import JOBS_CREATED, UPLOAD_BYTES
-from services.api.problems import ApiError
-from services.api.uploads import CheckedAudio, check_audio
+from services.common import catalog
+from services.common.problems import ApiError
+from services.common.uploads import CheckedAudio, check_audio
 from services.config import Settings
 from services.db import session_scope
 from services.models import Batch, Job
@@ -30,6 +29,7 @@ def check_callback(settings: Settings, spec: Spec) -> None:
 
 
 def check_dataset(settings: Settings, spec: Spec, graphstore) -> None:
+    """422 ``unknown_dataset`` unless the catalog (or the graph store) knows ``spec.dataset``."""
     with session_scope(settings.database_url) as session:
         if catalog.find_dataset(session, spec.dataset, graphstore) is None:
             raise ApiError(
@@ -40,9 +40,6 @@ def check_dataset(settings: Settings, spec: Spec, graphstore) -> None:
 def spec_json(spec: Spec) -> dict:
     """The spec as stored on the job row: every field, defaults filled in, JSON types."""
     return spec.model_dump(mode="json")
-
-
-_spec_json = spec_json  # the name the worker's submit task imports
 
 
 def _key_reused() -> ApiError:
@@ -100,8 +97,6 @@ def submit_job(
         return job, False
     _enqueue_or_remove(settings, store, enqueue, [job.id])
     log.info("job accepted", extra={"job_id": job.id, "tenant_id": tenant_id, "bytes": stored.size})
-    JOBS_CREATED.inc()
-    UPLOAD_BYTES.inc(stored.size)
     return job, True
 
 
@@ -168,8 +163,6 @@ def submit_batch(
             )
             rows.append(job)
     _enqueue_or_remove(settings, store, enqueue, [j.id for j in rows], batch_id=batch.id)
-    JOBS_CREATED.inc(len(rows))
-    UPLOAD_BYTES.inc(sum(s.size for s in stored))
     with session_scope(settings.database_url) as session:
         return session.get(Batch, batch.id), jobs.batch_jobs(session, batch.id), True
 
