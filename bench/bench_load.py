@@ -5,9 +5,10 @@
   latency p50 / p95 / max (target: 0 responses 5xx, p95 <= 2 s);
 - ``--reads`` (default 200) concurrent ``GET /v1/jobs`` (target: 0 errors).
 
-Production wiring: PostgreSQL and Redis on 127.0.0.1, the API as one ``uvicorn`` process (no
-worker: jobs stay queued; only accepting is measured), the filesystem object store, or the S3
-store with ``--s3-endpoint URL`` (a running S3-protocol server, e.g. ``moto_server``).
+Production wiring: PostgreSQL and Redis on 127.0.0.1, the API as one ``uvicorn`` process asking
+a graph-store process for the catalog (no worker: jobs stay queued; only accepting is
+measured), the filesystem object store, or the S3 store with ``--s3-endpoint URL`` (a running
+S3-protocol server, e.g. ``moto_server``).
 Run: ``.venv/bin/python bench/bench_load.py``. Prints one table; nothing is asserted. Numbers are
 for the machine it runs on (a shared 2-core machine gives slower accepts than a server).
 """
@@ -87,6 +88,14 @@ def main() -> int:
             song = h.write_test_song(home / "songs", seed=4242, seconds=args.song_seconds)
             data = song.read_bytes()
             c.api_key = h.create_key(url, "bench")
+            # as deployed: the graph store is its own process the API asks for the catalog
+            port = h.free_port()
+            c._spawn(
+                "graphstore",
+                [str(h.VENV_BIN / "uvicorn"), "services.graphstore.app:app", "--port", str(port)],
+            )
+            c.env["DANCEGRAPH_GRAPHSTORE_URL"] = f"http://127.0.0.1:{port}"
+            h.wait_for(lambda: h.port_open("127.0.0.1", port), 120, "the graph store")
             c.start_api()
             headers = c.headers()
 
