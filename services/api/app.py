@@ -118,7 +118,16 @@ def create_app(
             configure(
                 os.environ.get("DANCEGRAPH_LOG_LEVEL", "INFO"), json_logs=ctx.settings.log_json
             )
-        import dancegraph.music.decode  # noqa: F401  (warm: the first upload should not pay the import)
+        # Warm what the first uploads would otherwise import under the import lock all at once
+        # (a burst on a fresh process queued seconds behind it): the decoder, the graph-store
+        # client, the broker transport.
+        import dancegraph.music.decode  # noqa: F401
+
+        ctx.graphstore()
+        if ctx.enqueue is None:
+            from services.worker.enqueue import warm_up as warm_broker
+
+            warm_broker()
 
         do_migrate = ctx.settings.is_sqlite if migrate is None else migrate
         if do_migrate:

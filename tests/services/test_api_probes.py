@@ -68,8 +68,8 @@ def _job_count(settings) -> int:
 
 
 def test_thirty_concurrent_uploads_are_accepted_or_told_to_retry(make_settings, pg_url):
-    from services.common import catalog
     from services.api.app import create_app
+    from services.common import catalog
     from tests.services.conftest import _new_key
 
     settings = make_settings(pg_url, db_pool_size=2, db_max_overflow=0, db_pool_timeout_s=3.0)
@@ -117,8 +117,8 @@ def test_thirty_concurrent_uploads_are_accepted_or_told_to_retry(make_settings, 
 def test_callback_urls_at_internal_addresses_are_refused(make_settings, pg_url, url, song_wav):
     from fastapi.testclient import TestClient
 
-    from services.common import catalog
     from services.api.app import create_app
+    from services.common import catalog
     from tests.services.conftest import ApiClient, _new_key
 
     settings = make_settings(pg_url, webhook_allow_networks=[])  # no test receiver allowed here
@@ -179,8 +179,8 @@ def test_a_spec_with_an_integer_where_a_float_goes_is_fine(api, song_wav):
 def test_a_refused_enqueue_keeps_no_song(make_settings, pg_url):
     from fastapi.testclient import TestClient
 
-    from services.common import catalog
     from services.api.app import create_app
+    from services.common import catalog
     from tests.services.conftest import ApiClient, _new_key
 
     settings = make_settings(pg_url)
