@@ -124,6 +124,9 @@ def main() -> int:
             rd_status, rd_times = burst(args.reads, read)
             cpu2 = cpu_seconds(api_pid)
             load = os.getloadavg()[0]
+            if any(k.startswith("5") for k in up_status):  # say why, from the API's log
+                errors_logged = [x for x in c.log_text("api").splitlines() if '"error"' in x]
+                print("\n".join(errors_logged[-5:])[-3000:])
         finally:
             c.stop_all()
             h.drop_pg_database(url)

@@ -46,6 +46,10 @@ class InvalidKeyError(ValueError):
     """A key with an unsafe or malformed segment."""
 
 
+class StoreUnavailableError(ConnectionError):
+    """The object store did not answer, or answered with a server error: try again later."""
+
+
 def check_key(key: str) -> str:
     """Return ``key`` if every ``/``-separated segment is safe, else raise InvalidKeyError."""
     parts = key.split("/")
@@ -86,6 +90,12 @@ class ObjectStore(ABC):
     @abstractmethod
     def put_file(self, key: str, source: str | os.PathLike) -> None:
         """Store the local file ``source`` at ``key`` atomically (large files: multipart)."""
+
+    def put_blob(self, key: str, local: Path) -> None:
+        """Store the scratch file ``local`` at the content-addressed ``key`` and remove it; a
+        blob already there is kept (same content) and its time refreshed, so the sweeper of
+        unreferenced blobs sees it as new."""
+        self.move_in(key, local)
 
     @abstractmethod
     def put_bytes_if_absent(self, key: str, data: bytes) -> bool:
@@ -170,7 +180,7 @@ class ObjectStore(ABC):
                     digest.update(chunk)
                     fh.write(chunk)
             key = blob_key(digest.hexdigest())
-            self.move_in(key, Path(tmp))
+            self.put_blob(key, Path(tmp))
         finally:
             Path(tmp).unlink(missing_ok=True)
         return key, size

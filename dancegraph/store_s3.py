@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import quote
 
-from dancegraph.store import Entry, ObjectStore, check_key
+from dancegraph.store import Entry, ObjectStore, StoreUnavailableError, check_key
 
 MULTIPART_THRESHOLD = 16 * 1024 * 1024  # default; DANCEGRAPH_S3_MULTIPART_THRESHOLD overrides
 MIN_PART = 5 * 1024 * 1024  # S3's smallest part (all but the last)
@@ -49,6 +49,42 @@ def _client(endpoint_url: str | None = None):
     if endpoint_url:
         kwargs["endpoint_url"] = endpoint_url
     return boto3.session.Session().client("s3", **kwargs)
+
+
+_RETRY_CODES = {"SlowDown", "RequestTimeout", "ServiceUnavailable", "InternalError", "503", "500"}
+
+
+def _unavailable(exc: BaseException) -> bool:
+    """A failure of the server or the network (worth retrying later), not of the request."""
+    from boto3.exceptions import S3TransferFailedError, S3UploadFailedError
+    from botocore.exceptions import ClientError, HTTPClientError
+    from botocore.exceptions import ConnectionError as BotoConnectionError
+
+    failed = (HTTPClientError, BotoConnectionError, S3UploadFailedError, S3TransferFailedError)
+    if isinstance(exc, failed):
+        return True  # connection refused, reset, timed out; a transfer that gave up retrying
+    if isinstance(exc, ClientError):
+        status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode") or 0
+        return status >= 500 or exc.response.get("Error", {}).get("Code") in _RETRY_CODES
+    return False
+
+
+def _translated(method):
+    """Raise ``StoreUnavailableError`` for a server or network failure inside ``method``."""
+    import functools
+
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        try:
+            return method(*args, **kwargs)
+        except Exception as exc:
+            if _unavailable(exc):
+                raise StoreUnavailableError(
+                    f"object store unavailable ({type(exc).__name__})"
+                ) from exc
+            raise
+
+    return wrapper
 
 
 def _missing(exc: Exception) -> bool:
@@ -107,6 +143,7 @@ class S3Store(ObjectStore):
 
     # --- single objects ---------------------------------------------------------------------
 
+    @_translated
     def exists(self, key: str) -> bool:
         try:
             self.client.head_object(Bucket=self.bucket, Key=self._k(key))
@@ -116,6 +153,7 @@ class S3Store(ObjectStore):
                 return False
             raise
 
+    @_translated
     def get_bytes(self, key: str) -> bytes:
         try:
             return self.client.get_object(Bucket=self.bucket, Key=self._k(key))["Body"].read()
@@ -124,12 +162,31 @@ class S3Store(ObjectStore):
                 raise FileNotFoundError(key) from None
             raise
 
+    @_translated
     def put_bytes(self, key: str, data: bytes) -> None:
         self.client.put_object(Bucket=self.bucket, Key=self._k(key), Body=data)
 
+    @_translated
     def put_file(self, key: str, source: str | os.PathLike) -> None:
         self.client.upload_file(os.fspath(source), self.bucket, self._k(key), Config=self._transfer)
 
+    @_translated
+    def put_blob(self, key: str, local: Path) -> None:
+        try:
+            if self.exists(key):  # same content: refresh its time, do not send it again
+                full = self._k(key)
+                self.client.copy_object(
+                    Bucket=self.bucket,
+                    Key=full,
+                    CopySource={"Bucket": self.bucket, "Key": full},
+                    MetadataDirective="REPLACE",
+                )
+            else:
+                self.put_file(key, local)
+        finally:
+            local.unlink(missing_ok=True)
+
+    @_translated
     def put_bytes_if_absent(self, key: str, data: bytes) -> bool:
         from botocore.exceptions import ClientError
 
@@ -143,9 +200,11 @@ class S3Store(ObjectStore):
                 return False
             raise
 
+    @_translated
     def delete(self, key: str) -> None:
         self.client.delete_object(Bucket=self.bucket, Key=self._k(key))
 
+    @_translated
     def delete_prefix(self, prefix: str) -> None:
         keys = [self._k(e.key) for e in self.entries(prefix)]
         for i in range(0, len(keys), 1000):
@@ -154,6 +213,7 @@ class S3Store(ObjectStore):
                 Delete={"Objects": [{"Key": k} for k in keys[i : i + 1000]], "Quiet": True},
             )
 
+    @_translated
     def entries(self, prefix: str) -> Iterator[Entry]:
         paginator = self.client.get_paginator("list_objects_v2")
         out = []
@@ -164,6 +224,7 @@ class S3Store(ObjectStore):
                 )
         return iter(sorted(out, key=lambda e: e.key))
 
+    @_translated
     def children(self, prefix: str) -> list[str]:
         paginator = self.client.get_paginator("list_objects_v2")
         base = self._k(prefix) + "/"
@@ -175,6 +236,7 @@ class S3Store(ObjectStore):
 
     # --- local copies -----------------------------------------------------------------------
 
+    @_translated
     def local_path(self, key: str) -> Path:
         target = self.cache / check_key(key)
         if target.is_file():
@@ -193,6 +255,7 @@ class S3Store(ObjectStore):
             Path(tmp).unlink(missing_ok=True)
         return target
 
+    @_translated
     def local_dir(self, prefix: str) -> Path:
         folder = self.cache / check_key(prefix)
         if (folder / _COMPLETE).is_file():
@@ -207,6 +270,7 @@ class S3Store(ObjectStore):
 
     # --- sets of objects --------------------------------------------------------------------
 
+    @_translated
     def put_tree(self, prefix: str, folder: Path, *, last: str) -> bool:
         try:
             if self.exists(f"{prefix}/{last}"):
@@ -233,9 +297,11 @@ class S3Store(ObjectStore):
             ExpiresIn=int(ttl_s),
         )
 
+    @_translated
     def check(self) -> None:
         self.client.head_bucket(Bucket=self.bucket)
 
+    @_translated
     def sweep_uploads(self, older_than_s: float) -> int:
         """Abort multipart uploads under the prefix begun more than ``older_than_s`` ago."""
         limit = time.time() - older_than_s

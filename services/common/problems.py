@@ -18,6 +18,7 @@ from sqlalchemy import exc as sa_exc
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from dancegraph.errors import DanceGraphError, field_errors
+from dancegraph.store import StoreUnavailableError
 
 log = logging.getLogger("dancegraph.api")
 
@@ -168,6 +169,17 @@ def install(app: FastAPI) -> None:
             503,
             "database_unavailable",
             "the database is not reachable; try again later",
+            instance=request.url.path,
+            headers={"Retry-After": "5"},
+        )
+
+    @app.exception_handler(StoreUnavailableError)
+    async def _store_down(request: Request, exc: StoreUnavailableError):
+        log.error("object store unavailable on %s %s: %r", request.method, request.url.path, exc)
+        return problem_response(
+            503,
+            "store_unavailable",
+            "the object store is not reachable; try again later",
             instance=request.url.path,
             headers={"Retry-After": "5"},
         )

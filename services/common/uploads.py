@@ -103,7 +103,7 @@ class CheckedAudio:
         """
         if self.sha256 and self.path.parent == store.scratch:
             key = blob_key(self.sha256)
-            store.move_in(key, self.path)
+            store.put_blob(key, self.path)
             size = self.size
         else:
             with open(self.path, "rb") as fh:

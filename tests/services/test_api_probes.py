@@ -332,3 +332,34 @@ def test_a_corrupt_flac_fails_naming_the_uploaded_file(tmp_path: Path):
         assert exc.field == "audio"
     else:  # decoded around the damage
         assert analysis["duration_s"] > 20
+
+
+def test_an_unreachable_object_store_is_503_and_keeps_nothing(
+    make_settings, pg_url, song_wav, monkeypatch
+):
+    from fastapi.testclient import TestClient
+
+    from services.api.app import create_app
+    from services.common import catalog
+    from tests.conftest import S3_ENV
+    from tests.services.conftest import ApiClient, _new_key
+
+    monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:1")  # nothing listens there
+    for name, value in S3_ENV.items():
+        monkeypatch.setenv(name, value)
+    settings = make_settings(pg_url, store_url="s3://nowhere/store")
+    catalog.reset()
+    register_dataset(settings)
+    before = _job_count(settings)
+    with TestClient(create_app(settings, enqueue=celery_enqueue(settings), migrate=False)) as c:
+        name, key, tenant_id = _new_key(settings)
+        resp = ApiClient(c, settings, key, tenant_id, name).submit(song_wav, {})
+        ready = c.get("/readyz")
+    assert resp.status_code == 503 and resp.json()["code"] == "store_unavailable"
+    assert resp.headers["Retry-After"] and "127.0.0.1" not in resp.text
+    assert _job_count(settings) == before
+    from services.config import object_store
+
+    assert list(object_store(settings).scratch.glob("*")) == []
+    assert ready.status_code == 503
+    assert ready.json()["checks"]["store"] == "error: store unreachable (StoreUnavailableError)"
