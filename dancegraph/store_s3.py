@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -114,6 +115,8 @@ class S3Store(ObjectStore):
         self.scratch = Path(scratch).resolve() / "tmp"
         self.cache = Path(scratch).resolve() / "cache"
         self.client = _client()
+        self._lock = threading.Lock()
+        self._blob_locks: dict[str, list] = {}  # key -> [lock, holders and waiters]
         public = os.environ.get("DANCEGRAPH_S3_PUBLIC_ENDPOINT_URL", "")
         self._signer = _client(public) if public else self.client
         from boto3.s3.transfer import TransferConfig
@@ -172,6 +175,21 @@ class S3Store(ObjectStore):
 
     @_translated
     def put_blob(self, key: str, local: Path) -> None:
+        # one upload per blob at a time in this process: the same song sent by many requests
+        # at once travels once, the others find it stored
+        with self._lock:
+            entry = self._blob_locks.setdefault(key, [threading.Lock(), 0])
+            entry[1] += 1  # waiters: the entry goes when the last one is done
+        try:
+            with entry[0]:
+                self._put_blob(key, local)
+        finally:
+            with self._lock:
+                entry[1] -= 1
+                if entry[1] == 0:
+                    del self._blob_locks[key]
+
+    def _put_blob(self, key: str, local: Path) -> None:
         try:
             if self.exists(key):  # same content: refresh its time, do not send it again
                 full = self._k(key)
