@@ -313,20 +313,17 @@ class FileStore(ObjectStore):
         return Path(tmp)
 
     def put_bytes(self, key: str, data: bytes) -> None:
-        target = self.path(key)
-        tmp = self._tmp_file()
-        try:
-            tmp.write_bytes(data)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(tmp, target)
-        finally:
-            tmp.unlink(missing_ok=True)
+        self._write(key, lambda tmp: tmp.write_bytes(data))
 
     def put_file(self, key: str, source: str | os.PathLike) -> None:
+        self._write(key, lambda tmp: shutil.copyfile(source, tmp))
+
+    def _write(self, key: str, fill) -> None:
+        """``fill`` a scratch file, then rename it to ``key``: readers see all or nothing."""
         target = self.path(key)
         tmp = self._tmp_file()
         try:
-            shutil.copyfile(source, tmp)
+            fill(tmp)
             target.parent.mkdir(parents=True, exist_ok=True)
             os.replace(tmp, target)
         finally:

@@ -149,45 +149,47 @@ def install(app: FastAPI) -> None:
             headers=getattr(exc, "headers", None),
         )
 
-    @app.exception_handler(sa_exc.TimeoutError)
-    async def _pool_busy(request: Request, exc: sa_exc.TimeoutError):
-        log.warning("database pool exhausted on %s %s", request.method, request.url.path)
-        return problem_response(
-            503,
-            "database_busy",
-            "the service is busy; try again shortly",
-            instance=request.url.path,
-            headers={"Retry-After": "2"},
-        )
-
-    @app.exception_handler(sa_exc.OperationalError)
-    @app.exception_handler(sa_exc.InterfaceError)
-    async def _db_down(request: Request, exc: sa_exc.DBAPIError):
-        # the driver's text names the server's host and port: it goes to the log only
-        log.error("database unavailable on %s %s: %s", request.method, request.url.path, exc)
-        return problem_response(
-            503,
-            "database_unavailable",
-            "the database is not reachable; try again later",
-            instance=request.url.path,
-            headers={"Retry-After": "5"},
-        )
-
-    @app.exception_handler(StoreUnavailableError)
-    async def _store_down(request: Request, exc: StoreUnavailableError):
-        log.error("object store unavailable on %s %s: %r", request.method, request.url.path, exc)
-        return problem_response(
-            503,
-            "store_unavailable",
-            "the object store is not reachable; try again later",
-            instance=request.url.path,
-            headers={"Retry-After": "5"},
-        )
+    for exc_types, code, detail, retry_after in _UNAVAILABLE:
+        for exc_type in exc_types:
+            app.add_exception_handler(exc_type, _unavailable(code, detail, retry_after))
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return internal_error_response(request.url.path)
+
+
+# Overload and outages: 503 with Retry-After and a fixed text; the exception's own words (the
+# driver's text names hosts and ports) go to the log only.
+_UNAVAILABLE = (
+    ((sa_exc.TimeoutError,), "database_busy", "the service is busy; try again shortly", 2),
+    (
+        (sa_exc.OperationalError, sa_exc.InterfaceError),
+        "database_unavailable",
+        "the database is not reachable; try again later",
+        5,
+    ),
+    (
+        (StoreUnavailableError,),
+        "store_unavailable",
+        "the object store is not reachable; try again later",
+        5,
+    ),
+)
+
+
+def _unavailable(code: str, detail: str, retry_after: int):
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        log.error("%s on %s %s: %r", code, request.method, request.url.path, exc)
+        return problem_response(
+            503,
+            code,
+            detail,
+            instance=request.url.path,
+            headers={"Retry-After": str(retry_after)},
+        )
+
+    return handler
 
 
 def internal_error_response(instance: str | None = None) -> JSONResponse:
