@@ -74,14 +74,16 @@ def cluster(request, tmp_path_factory, demo_store, songs):  # noqa: F811
                 home, url, redis_url(), home / "scratch", f"s3://{bucket}/store", store_env
             )
             upload_store(demo_store, c.store)
-        c.song = write_test_song(songs, seed=1, seconds=16.0)
-        _seed_analysis(c.store, c.song)  # the shared song is analysed once for the module
-        c.api_key = create_key(url, "acme")
-        c.start_api()
-        c._spawn("reaper", [str(VENV_BIN / "dancegraph"), "reaper", "--interval", "1"])
-        c.start_worker("w1")
-        yield c
-        c.stop_all()
+        try:  # whatever started is stopped, also when a start fails
+            c.song = write_test_song(songs, seed=1, seconds=16.0)
+            _seed_analysis(c.store, c.song)  # the shared song is analysed once for the module
+            c.api_key = create_key(url, "acme")
+            c.start_api()
+            c._spawn("reaper", [str(VENV_BIN / "dancegraph"), "reaper", "--interval", "1"])
+            c.start_worker("w1")
+            yield c
+        finally:
+            c.stop_all()
     drop_pg_database(url)
     flush_redis()
 
