@@ -1,13 +1,13 @@
 # The two set-up commands of the README: `make demo` and `make test`.
 PY := .venv/bin/python
 
-.PHONY: install demo test lint openapi bench clean frontend
+.PHONY: install demo test lint typecheck openapi bench clean frontend
 
 install:
 	bash scripts/install.sh
 
 demo: install
-	$(PY) -m dancegraph.cli quickstart
+	.venv/bin/dancegraph quickstart
 
 test: install
 	$(PY) -m pytest -q
@@ -15,6 +15,9 @@ test: install
 lint:
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
+
+typecheck:
+	.venv/bin/mypy
 
 frontend:
 	bash scripts/install-frontend.sh

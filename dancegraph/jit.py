@@ -22,13 +22,25 @@ Run ``python -m dancegraph.jit`` to compile every kernel once (the install step 
 from __future__ import annotations
 
 import fcntl
+import importlib
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
-__all__ = ["configure_cache", "compile_lock", "register", "ensure", "warm_up", "warm_kernels"]
+__all__ = [
+    "configure_cache",
+    "compile_lock",
+    "register",
+    "ensure",
+    "warm_up",
+    "warm_kernels",
+    "import_cached",
+]
 
 # the modules that register kernels (imported by warm_kernels)
 KERNEL_MODULES = (
@@ -45,14 +57,14 @@ _warm_lock = threading.RLock()
 def configure_cache() -> Path:
     """Point numba's cache at ``kernel_cache_dir()`` for kernels decorated from now on (also
     reaches librosa's kernels when librosa is imported later, through ``NUMBA_CACHE_DIR``)."""
-    import numba
+    from numba.core import config  # its settings are module attributes set at run time
 
     from dancegraph.paths import kernel_cache_dir
 
-    if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = str(kernel_cache_dir())
-    os.environ.setdefault("NUMBA_CACHE_DIR", numba.config.CACHE_DIR)
-    path = Path(numba.config.CACHE_DIR)
+    if not config.CACHE_DIR:  # type: ignore[attr-defined]
+        config.CACHE_DIR = str(kernel_cache_dir())  # type: ignore[attr-defined]
+    path = Path(config.CACHE_DIR)  # type: ignore[attr-defined]
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(path))
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -119,11 +131,34 @@ def warm_up(names: Iterable[str] | None = None) -> list[str]:
     return done
 
 
+def import_cached(module: str) -> ModuleType:
+    """Import ``module`` with numba's ``guvectorize`` caching forced on, under the compile lock.
+
+    librosa declares one beat-tracking gufunc ``cache=False`` (``librosa.beat``), so every
+    process compiled it again (about 2.5 s of CPU per start): caching gufuncs races when two
+    processes write the cache at once (numba issue #10128), which the lock rules out here. A
+    module already imported is returned as it is.
+    """
+    if module in sys.modules:
+        return sys.modules[module]
+    import numba
+
+    original = numba.guvectorize
+
+    def cached(*args: Any, **kwargs: Any) -> Any:
+        return original(*args, **{**kwargs, "cache": True})
+
+    with compile_lock():
+        numba.guvectorize = cached
+        try:
+            return importlib.import_module(module)
+        finally:
+            numba.guvectorize = original
+
+
 def warm_kernels(modules: Iterable[str] = KERNEL_MODULES) -> list[str]:
     """Import ``modules`` (default: every kernel module) and warm every registered part: what a
     process calls at start (install step and worker: all; the CLI: what its command runs)."""
-    import importlib
-
     for module in modules:
         importlib.import_module(module)
     return warm_up()

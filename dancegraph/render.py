@@ -24,7 +24,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -333,7 +333,7 @@ def render(
 
 
 def _music_bar(analysis, frames: np.ndarray, b: int) -> dict:
-    entry = {
+    entry: dict[str, Any] = {
         "index": b,
         "start_s": float(analysis.bars[b][0]),
         "end_s": float(analysis.bars[b][1]),

@@ -155,10 +155,15 @@ class MotifPin(_Strict):
     motif: int = Field(..., ge=0)
 
 
+Format = Literal["bvh", "fbx"]
+
+
+def _all_formats() -> list[Format]:
+    return ["bvh", "fbx"]
+
+
 class Output(_Strict):
-    formats: list[Literal["bvh", "fbx"]] = Field(
-        default_factory=lambda: ["bvh", "fbx"], min_length=1
-    )
+    formats: list[Format] = Field(default_factory=_all_formats, min_length=1)
     fps: Literal[30, 60] = 30
     foot_cleanup: bool = True
 

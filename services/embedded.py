@@ -114,6 +114,17 @@ class Service:
         self.reaper_thread.join(timeout=5)
 
 
+def _stop_with_parent() -> None:
+    """In the worker child before it runs: ask Linux for a SIGTERM (Celery's warm shutdown) when
+    the process that started it dies, so a killed ``serve``/``quickstart`` leaves no worker
+    behind polling its broker. Elsewhere a no-op."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
 def start_background(settings: Settings, concurrency: int = 1) -> Service:
     """Start the worker child process and the reaper thread."""
     from services.worker import reaper
@@ -121,6 +132,7 @@ def start_background(settings: Settings, concurrency: int = 1) -> Service:
     worker = subprocess.Popen(
         worker_command(concurrency=concurrency, name=f"embedded-{os.getpid()}@%h"),
         env=child_env(settings),
+        preexec_fn=_stop_with_parent,
     )
     stop = threading.Event()
     thread = threading.Thread(

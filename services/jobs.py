@@ -21,9 +21,9 @@ import hashlib
 import re
 import secrets
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy import CursorResult, and_, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -204,8 +204,11 @@ def _update_live(
     if worker is not None:
         cond.append(Job.worker == worker)
     values = {**values, "updated_at": utcnow()}
-    res = session.execute(
-        update(Job).where(*cond).values(**values).execution_options(synchronize_session=False)
+    res = cast(
+        CursorResult[Any],
+        session.execute(
+            update(Job).where(*cond).values(**values).execution_options(synchronize_session=False)
+        ),
     )
     session.flush()
     return res.rowcount == 1
@@ -234,18 +237,21 @@ def claim_job(
     )
     if stages:
         running_free = or_(running_free, and_(Job.status == RUNNING, Job.stage.in_(stages)))
-    res = session.execute(
-        update(Job)
-        .where(Job.id == job_id, or_(Job.status == QUEUED, running_free))
-        .values(
-            status=RUNNING,
-            worker=worker[:200],
-            attempts=Job.attempts + (0 if stages else 1),
-            started_at=func.coalesce(Job.started_at, now),
-            heartbeat_at=now,
-            updated_at=now,
-        )
-        .execution_options(synchronize_session=False)
+    res = cast(
+        CursorResult[Any],
+        session.execute(
+            update(Job)
+            .where(Job.id == job_id, or_(Job.status == QUEUED, running_free))
+            .values(
+                status=RUNNING,
+                worker=worker[:200],
+                attempts=Job.attempts + (0 if stages else 1),
+                started_at=func.coalesce(Job.started_at, now),
+                heartbeat_at=now,
+                updated_at=now,
+            )
+            .execution_options(synchronize_session=False)
+        ),
     )
     session.flush()
     if res.rowcount != 1:

@@ -34,6 +34,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import Any
 from urllib.parse import urlsplit
 
 import httpx
@@ -320,7 +321,10 @@ def deliver_job_webhook(
         delivery_id=delivery_id,
         allow_networks=settings.webhook_allow_networks,
     )
-    values = {"webhook_attempts": Job.webhook_attempts + 1, "webhook_last_error": result.error}
+    values: dict[str, Any] = {
+        "webhook_attempts": Job.webhook_attempts + 1,
+        "webhook_last_error": result.error,
+    }
     if result.ok:
         values.update(webhook_status=WEBHOOK_DELIVERED, webhook_delivered_at=utcnow())
     elif final_attempt or not result.retryable:

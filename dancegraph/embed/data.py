@@ -35,6 +35,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -143,7 +144,7 @@ def _load_music(entries: list[dict], root: Path, dims: list[str], kind: str) -> 
     from dancegraph.music.features import bar_onset_rms, frame_features, logmel_window, music_logmel
 
     out = Branch()
-    current: tuple[Path | None, object] = (None, None)  # entries of one song follow each other
+    current: tuple[Path | None, Any] = (None, None)  # entries of one song follow each other
     for e in entries:
         bars = np.asarray(e.get("bars", []), dtype=float).reshape(-1, 2)
         label = _label(e, dims)
@@ -221,7 +222,7 @@ def load_training_set(path: str | Path, kind: str) -> TrainingSet:
     dims = [str(d) for d in data["style_dims"]]
     music = _load_music(data.get("music", []), root, dims, kind)
     dance = _load_dance(data.get("dance", []), root, dims, kind)
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     for pr in data.get("pairs", []):
         m, d = music.entry.get(str(pr.get("music"))), dance.entry.get(str(pr.get("dance")))
         if m is None or d is None:
@@ -229,7 +230,7 @@ def load_training_set(path: str | Path, kind: str) -> TrainingSet:
         if len(m) != len(d):
             raise TrainingDataError(f"pair {pr}: {len(m)} music bars but {len(d)} dance bars")
         pairs.extend(zip(m, d, strict=True))
-    return TrainingSet(sha, dims, music, dance, np.array(pairs, dtype=int).reshape(-1, 2))
+    return TrainingSet(sha, dims, music, dance, np.array(pairs, dtype=np.int64).reshape(-1, 2))
 
 
 def write_paired_set(out_dir: str | Path, n_songs: int = 10, bars: int = 4, seed: int = 0) -> Path:

@@ -193,7 +193,7 @@ def analysis_terms(
     ):
         rec = entry.get(kind)
         arr = (getattr(analysis, attr, None) or {}).get(rec["sha256"]) if rec else None
-        if arr is not None:
+        if arr is not None and rec is not None:
             arr = np.asarray(arr)
             if arr.shape[0] != n_bars or arr.shape[1:] != (width,):
                 raise SpecError(

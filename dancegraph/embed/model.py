@@ -25,6 +25,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -44,7 +45,7 @@ class LoadedModel:
 
     path: str
     header: dict
-    net: torch.nn.Module
+    net: Any  # a StyleModel or a RhythmModel (``kind`` says which)
     sha256: str
 
     @property

@@ -265,6 +265,9 @@ class _RhythmEncoder(nn.Module):
 class RhythmModel(nn.Module):
     """E_MR, E_DR and the shared signature classifier E_RS (→ logits over the 13 signatures)."""
 
+    common_bits: torch.Tensor  # buffers (registered in __init__)
+    slot_weights: torch.Tensor
+
     def __init__(self):
         super().__init__()
         self.music = _RhythmEncoder(2, 200)

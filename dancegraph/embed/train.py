@@ -25,6 +25,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -253,6 +254,7 @@ def train(
     say = progress or (lambda _line: None)
     t0 = time.perf_counter()
     ts = load_training_set(manifest, kind)
+    config: dict[str, Any]
     if kind == "style":
         classes = _check_style(ts)
         config = {"classes": classes, "style_dims": ts.style_dims}

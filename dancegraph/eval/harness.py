@@ -27,6 +27,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,6 +42,10 @@ from dancegraph.motion.retime import resample
 from dancegraph.motion.skeleton import Motion
 from dancegraph.render import to_json_types
 from dancegraph.spec import Spec
+
+if TYPE_CHECKING:
+    from dancegraph.motion.dataset import Dataset
+    from dancegraph.music.analysis import MusicAnalysis
 
 ROW_TITLES = {
     "real": "Real library dances (ground truth)",
@@ -93,7 +98,7 @@ class Library:
     the frame-to-frame reference of seam smoothness and the kinetic features of FID_k."""
 
     graph: MotionGraph
-    dataset: object | None
+    dataset: Dataset | None
     seams: smoothness.Reference | None
     kinetic_windows: np.ndarray | None  # (N, 72) raw features of the takes' windows
     norm: tuple[np.ndarray, np.ndarray] | None
@@ -102,6 +107,7 @@ class Library:
     def take(self, clip: str) -> Motion:
         """A take at 60 fps (cached)."""
         if clip not in self._takes:
+            assert self.dataset is not None, "a library without its dataset has no takes"
             self._takes[clip] = resample(self.dataset.motion(clip), EVAL_FPS)
         return self._takes[clip]
 
@@ -134,7 +140,7 @@ class Song:
     """A song to dance: its analysis, its tracker beats and librosa's percussive beats (s)."""
 
     name: str
-    analysis: object
+    analysis: MusicAnalysis
     beats: np.ndarray
     librosa_beats: np.ndarray
 
@@ -251,7 +257,7 @@ def _originals(graph: MotionGraph) -> dict[tuple[int, int], int]:
     """(clip index, bar) → node index of every original bar."""
     kind = np.asarray(graph.node_kind)
     clip, bar = np.asarray(graph.node_clip), np.asarray(graph.node_bar)
-    return {(int(clip[i]), int(bar[i])): i for i in np.nonzero(kind == 0)[0]}
+    return {(int(clip[i]), int(bar[i])): int(i) for i in np.nonzero(kind == 0)[0]}
 
 
 def random_walk(graph: MotionGraph, n_bars: int, rng: np.random.Generator) -> np.ndarray:
@@ -353,7 +359,7 @@ def _row_dances(lib: Library, song: Song, spec: Spec, row: str, song_no: int) ->
         return _real_dances(lib, song, spec, song_no)
     if row in ("random_walk", "clip_concat"):
         make = random_walk if row == "random_walk" else clip_concatenation
-        paths = []
+        paths: list[dict[str, Any]] = []
         for k in range(spec.alternatives):
             rng = np.random.default_rng([spec.seed, song_no, k, ROWS.index(row)])
             paths.append({"nodes": make(lib.graph, n_bars, rng), "placements": None})
@@ -420,7 +426,7 @@ def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[s
             if len(song.get(row, [])) > 1
         )
         entry["div_paths"] = _mean(
-            diversity.path_diversity([d.nodes for d in song[row]])
+            diversity.path_diversity([d.nodes for d in song[row] if d.nodes is not None])
             for song in per_song
             if row not in ("real",) and len(song.get(row, [])) > 1
         )

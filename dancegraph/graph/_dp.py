@@ -41,7 +41,7 @@ from numba.extending import intrinsic
 # ``forward`` hold ``FORWARD_LOCK``. NUMBA_THREADING_LAYER overrides; NUMBA_NUM_THREADS sets the
 # thread count (default: every core).
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+    numba.config.THREADING_LAYER = "workqueue"  # type: ignore[attr-defined]
 FORWARD_LOCK = threading.Lock()
 
 INF = np.float32(np.inf)

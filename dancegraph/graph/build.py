@@ -453,9 +453,9 @@ def compute_edges(
     cost = np.empty(len(src), dtype=np.float32)
     for a in range(0, len(src), 1 << 15):
         sl = slice(a, a + (1 << 15))
-        p, q = src[sl], dst[sl]
+        ps, qs = src[sl], dst[sl]
         cost[sl] = pair_cost(
-            exit_[p], entry[q], style[p], style[q], blocks, params.w_pose, params.w_style
+            exit_[ps], entry[qs], style[ps], style[qs], blocks, params.w_pose, params.w_style
         )
     report = {
         "pairs_below_threshold": below,

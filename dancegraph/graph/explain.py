@@ -12,27 +12,40 @@ import numpy as np
 
 from dancegraph.errors import SpecError
 from dancegraph.graph import _dp
+from dancegraph.graph.artifact import MotionGraph
 from dancegraph.graph.search import (
     RECREATE_WEIGHT,
     STAGE_WEIGHT,
     WAYPOINT_WEIGHT,
     Alternative,
+    SearchContext,
     bar_terms,
     root_trajectory,
 )
+from dancegraph.spec import Spec
 
 STAGE_TOLERANCE = 1e-6
 
 
-def breakdown(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternative:
+def breakdown(
+    graph: MotionGraph,
+    music: dict,
+    spec: Spec,
+    nodes: np.ndarray,
+    ctx: SearchContext,
+    pairs: list,
+    contradictions: list,
+) -> Alternative:
+    """Cost breakdown and constraint check of path ``nodes`` (one per bar); raises SpecError
+    when the stage or a waypoint is missed (no path satisfied it)."""
     w = spec.weights
     n_bars = len(nodes)
     nodes = np.asarray(nodes, dtype=np.int64)
-    st, rh = bar_terms(graph, ctx["zm"], ctx["sig_cost"], nodes, spec)
+    st, rh = bar_terms(graph, ctx.zm, ctx.sig_cost, nodes, spec)
     user = np.zeros(n_bars)
-    if ctx["recreate"] is not None:
-        user += RECREATE_WEIGHT * (np.asarray(graph.motif)[nodes] != ctx["recreate"])
-    trans, offgraph = _dp.path_transitions(ctx["dp"], nodes)
+    if ctx.recreate is not None:
+        user += RECREATE_WEIGHT * (np.asarray(graph.motif)[nodes] != ctx.recreate)
+    trans, offgraph = _dp.path_transitions(ctx.dp, nodes)
     trans *= w.transition
     structure = np.zeros(n_bars)
     violations = []
@@ -48,9 +61,9 @@ def breakdown(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternat
             )
             violations.append({"bars": [int(a), int(b)], "rule": rule, "reason": reason})
     # trajectory: stage and waypoints
-    placements = root_trajectory(graph, nodes, ctx["start"])
-    stage = ctx["stage"]
-    radius = ctx["radius"]
+    placements = root_trajectory(graph, nodes, ctx.start)
+    stage = ctx.stage
+    radius = ctx.radius
     if stage[0] < stage[1]:
         r = radius[nodes]
         x, z = placements[:, 0], placements[:, 1]
@@ -68,8 +81,8 @@ def breakdown(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternat
                 code="constraint_conflict",
                 field="stage",
             )
-    wp_bar, wp_idx, wp_pos, wp_tol = ctx["wp"]
-    path = ctx["root_path"]
+    wp_bar, wp_idx, wp_pos, wp_tol = ctx.waypoints
+    path = ctx.root_path
     for i in range(len(wp_bar)):
         t = int(wp_bar[i])
         x, z, yaw = placements[t]

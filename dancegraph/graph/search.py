@@ -141,6 +141,34 @@ class SearchResult:
         )
 
 
+@dataclass
+class SearchContext:
+    """What the passes of one search share, and what explaining a path reads: the DP's arrays
+    (``dp``, ``chain``, ``track``, ``slots`` states per node, ``dense`` variables relaxed from
+    every state), each bar's chain ``step`` and mirror ``parity``, the trajectory terms
+    (``stage`` bounds and weight, ``start`` pose, ``waypoints`` as (bar, path index, position,
+    tolerance) arrays, node ``radius``, ``root_path``), the data terms' inputs (``zm`` (T, 32)
+    music style, ``sig_cost`` (T, 13)), the motif sequence to re-create (or None), and the
+    charge cache kept across passes (``memo``)."""
+
+    dp: _dp.Graph
+    chain: _dp.Chain
+    track: _dp.Track
+    slots: int
+    step: np.ndarray
+    parity: np.ndarray
+    stage: np.ndarray
+    start: np.ndarray
+    waypoints: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    radius: np.ndarray
+    root_path: np.ndarray
+    zm: np.ndarray
+    sig_cost: np.ndarray
+    recreate: np.ndarray | None
+    dense: np.ndarray
+    memo: tuple[np.ndarray, np.ndarray]
+
+
 # --------------------------------------------------------------------------------------------
 # music side
 
@@ -260,6 +288,7 @@ def match_nodes(
             )
         bit = np.uint32(graph.tag_bit(tag))
         return np.nonzero(np.asarray(graph.node_tags) & bit)[0]
+    assert node is not None  # the spec's validator: a node, or a tag
     take, _, rest = node.partition(":")
     if rest == "*":
         if take not in graph.clips:
@@ -444,6 +473,8 @@ def bar_terms(
 
 def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     """Best path and ``spec.alternatives − 1`` diverse alternatives for ``analysis``'s bars."""
+    from dancegraph.graph.explain import breakdown  # cost breakdown and constraint check of a path
+
     jit.ensure("search")  # compiles into the shared kernel cache only under its lock
     music = _music_arrays(analysis)
     n_bars, n_nodes = music["n"], graph.n_nodes
@@ -603,7 +634,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
     if empty.size:
         members = np.nonzero(var == empty[0])[0]
         t = int(members[0])
-        if parity[members].any() and all(allowed_at(m).any() for m in members):
+        if parity[members].any() and all(allowed_at(int(m)).any() for m in members):
             raise SpecError(
                 f"bars {members.tolist()} must mirror each other (structure.mirror) but the excludes leave no node with an allowed mirror",
                 code="constraint_conflict",
@@ -642,7 +673,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         wp_idx.append(int(np.clip(round(frac * n_path), 0, n_path - 1)))
         wp_pos.append(wp.position)
         wp_tol.append(wp.tolerance)
-    wp = (
+    waypoints = (
         np.array(wp_bar, dtype=np.int64),
         np.array(wp_idx, dtype=np.int64),
         np.array(wp_pos, dtype=np.float64).reshape(-1, 2),
@@ -686,37 +717,36 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         cell=POSITION_CELL if on else -1.0,
         start=start,
         stage=np.append(stage, STAGE_WEIGHT),
-        wp_bar=wp[0],
-        wp_idx=wp[1],
-        wp_pos=wp[2],
-        wp_tol=wp[3],
+        wp_bar=waypoints[0],
+        wp_idx=waypoints[1],
+        wp_pos=waypoints[2],
+        wp_tol=waypoints[3],
         wp_w=WAYPOINT_WEIGHT,
         reach=reach,
     )
-    ctx = {
-        "graph": graph,
-        "dp": dp_graph,
-        "chain": chain,
-        "track": track,
-        "slots": slots,
-        "step": step,
-        "parity": parity,
-        "stage": stage,
-        "start": start,
-        "wp": wp,
-        "radius": _ro(graph.radius, np.float64),
-        "root_path": dp_graph.path,
-        "zm": zm,
-        "sig_cost": sig_cost,
-        "recreate": recreate,
-        # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
-        "dense": n_allowed <= DENSE_LIMIT,
-    }
     # per state the cost of each charged transition, kept across the passes (alternatives)
     n_memo = chain.charge_n.size if chain.charge_n.size * n_nodes * slots <= MEMO_BUDGET else 0
-    ctx["memo"] = (
-        np.full((n_nodes * slots, n_memo, 2), -1, dtype=np.int32),
-        np.zeros((n_nodes * slots, n_memo), dtype=np.float32),
+    ctx = SearchContext(
+        dp=dp_graph,
+        chain=chain,
+        track=track,
+        slots=slots,
+        step=step,
+        parity=parity,
+        stage=stage,
+        start=start,
+        waypoints=waypoints,
+        radius=_ro(graph.radius, np.float64),
+        root_path=dp_graph.path,
+        zm=zm,
+        sig_cost=sig_cost,
+        recreate=recreate,
+        # a short allowed set (pins, motif pins) is relaxed from every state, not along edges
+        dense=n_allowed <= DENSE_LIMIT,
+        memo=(
+            np.full((n_nodes * slots, n_memo, 2), -1, dtype=np.int32),
+            np.zeros((n_nodes * slots, n_memo), dtype=np.float32),
+        ),
     )
     alternatives: list[Alternative] = []
     bars_per_var = np.bincount(var, minlength=n_vars).astype(np.float32)
@@ -730,12 +760,13 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
         # the reuse penalty counts every bar a variable stands for
         u = unary + bars_per_var[:, None] * penalty[None, :]
         if target_sig is not None:
+            assert spec.signature is not None  # target_sig is set only with it
             # the χ² to the target is not a per-bar cost: plan motifs (see below) and keep the
             # path with the best cost + scale·χ²
             scale = SIGNATURE_SCALE * spec.signature.weight * n_bars
 
             def scored(nodes, scale=scale):
-                alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+                alt = breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
                 chi2 = choreography.chi_square(
                     choreography.motif_signature(motif[nodes], len(target_sig)), target_sig
                 )
@@ -765,7 +796,7 @@ def search(graph: MotionGraph, analysis, spec: Spec) -> SearchResult:
             alt.choreography["target"] = spec.signature.target
         else:
             nodes = run_with(u)
-            alt = evaluate(graph, music, spec, nodes, ctx, pairs, contradictions)
+            alt = breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
         if recreate is not None:
             alt.choreography["recreate_match"] = float(np.mean(motif[nodes] == recreate))
         alternatives.append(alt)
@@ -830,7 +861,7 @@ def warm_up() -> None:
 
     n, d = 2, 4
     z = np.zeros
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "node_clip": z(n, np.int32),
         "node_bar": np.arange(n, dtype=np.int32),
         "node_kind": z(n, np.int8),
@@ -976,31 +1007,31 @@ def _ptr(owner: np.ndarray, n_chain: int) -> np.ndarray:
     return ptr
 
 
-def _run(ctx: dict, unary: np.ndarray, spec: Spec) -> np.ndarray:
+def _run(ctx: SearchContext, unary: np.ndarray, spec: Spec) -> np.ndarray:
     """One forward pass and backtrack; returns the node of every song bar ``(T,)``."""
     unary = np.ascontiguousarray(unary, dtype=np.float32)
     with _dp.FORWARD_LOCK:
         back, final, dead = _dp.forward(
             unary,
-            ctx["chain"],
-            ctx["dp"],
-            ctx["track"],
+            ctx.chain,
+            ctx.dp,
+            ctx.track,
             float(spec.weights.transition),
-            ctx["dense"],
-            ctx["slots"],
+            ctx.dense,
+            ctx.slots,
             DENSE_LIMIT,
-            *ctx["memo"],
+            *ctx.memo,
         )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(
-            f"no path reaches bar {int(ctx['chain'].bar[dead])}",
+            f"no path reaches bar {int(ctx.chain.bar[dead])}",
             code="constraint_conflict",
             field="include",
         )
-    chain_nodes, _ = _dp.backtrack(back, final, ctx["slots"])
-    nodes = chain_nodes[ctx["step"]]
-    flip = ctx["parity"] == 1
-    nodes[flip] = ctx["dp"].mirror_of[nodes[flip]]
+    chain_nodes, _ = _dp.backtrack(back, final, ctx.slots)
+    nodes = chain_nodes[ctx.step]
+    flip = ctx.parity == 1
+    nodes[flip] = ctx.dp.mirror_of[nodes[flip]]
     return nodes
 
 
@@ -1034,14 +1065,6 @@ def placed_motion(
     rot = m.rotations.copy()
     rot[:, 0] = quat.multiply(np.broadcast_to(turn, rot[:, 0].shape), rot[:, 0])
     return Motion(skeleton=m.skeleton, fps=m.fps, root_positions=root, rotations=rot)
-
-
-def evaluate(graph, music, spec, nodes, ctx, pairs, contradictions) -> Alternative:
-    """Cost breakdown and constraint check of a path; raises SpecError when the stage or a
-    waypoint is missed (no path satisfied it)."""
-    from dancegraph.graph.explain import breakdown
-
-    return breakdown(graph, music, spec, nodes, ctx, pairs, contradictions)
 
 
 jit.register("search", warm_up)

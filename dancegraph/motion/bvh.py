@@ -14,6 +14,7 @@ Yrotation`` means ``R = Rz · Rx · Ry``), which is scipy's upper-case ``"ZXY"``
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from pathlib import Path
@@ -218,7 +219,7 @@ def _euler_order(chans: tuple[str, ...]) -> str:
     return "".join(_ROTATION[c] for c in chans if c in _ROTATION)
 
 
-def read_bvh(path: str | Path, *, scale: float = 1.0, fps: float | None = None) -> Motion:
+def read_bvh(path: str | os.PathLike, *, scale: float = 1.0, fps: float | None = None) -> Motion:
     """Read a BVH file.
 
     ``scale`` converts file units to metres (0.056444 for CMU ASF units); ``fps`` overrides the

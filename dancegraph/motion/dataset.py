@@ -72,7 +72,7 @@ import re
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -525,6 +525,11 @@ def _annotation_bars(cm: ClipManifest, fps: float) -> np.ndarray | None:
     return np.stack(rows) if rows else np.zeros((0, 5))
 
 
+def _bpm_range(bpm: Sequence[float] | None) -> tuple[float, float] | None:
+    """A manifest's ``[low, high]`` tempo prior as a pair (None when not given)."""
+    return (float(bpm[0]), float(bpm[1])) if bpm else None
+
+
 def _fps_warning(rows: list[ClipInfo], prior: tuple[float, float] | None) -> str | None:
     """A warning when many clips move much faster (or slower) than the tempo prior allows."""
     est = [c for c in rows if c.beat_source == "kinematic" and math.isfinite(c.motion_tempo_bpm)]
@@ -582,7 +587,7 @@ def _clip_manifest(m: Manifest, cid: str, path: Path) -> ClipManifest:
 
 def _npz_bytes(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez(buf, **arrays)  # type: ignore[arg-type]  # numpy's stub reads **kwds as allow_pickle
     return buf.getvalue()
 
 
@@ -700,7 +705,8 @@ def import_dataset(
             field=str(src),
         )
 
-    prior = tuple(m.tempo_prior_bpm) if m.tempo_prior_bpm else None
+    assert skeleton is not None  # set by the first imported clip, and rows holds one
+    prior = _bpm_range(m.tempo_prior_bpm)
     fps_warning = _fps_warning(rows, prior)
     if fps_warning:
         warnings.append(fps_warning)
@@ -800,7 +806,7 @@ def _import_clip(
     est = None
     if duration >= 2.0:
         signals = tempo_mod.periodicity_signals(positions, fps, root=root, feet=feet, hands=hands)
-        est = tempo_mod.estimate_tempo(signals, fps, tuple(prior) if prior else None, kb)
+        est = tempo_mod.estimate_tempo(signals, fps, _bpm_range(prior), kb)
         motion_tempo = est.motion_tempo_bpm
 
     if ann is not None:
@@ -975,7 +981,7 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
 
 def list_datasets(store: ObjectStore) -> list[dict]:
     """Summaries of the stored datasets: name, version, clips, bars, joints, licence."""
-    out = []
+    out: list[dict] = []
     for name in store.children("datasets"):
         try:
             ds = load_dataset(store, name)

@@ -71,7 +71,7 @@ def demo_skeleton() -> Skeleton:
     parents = [-1 if p is None else names.index(p) for _, p, _ in _JOINTS]
     offsets = np.array([o for _, _, o in _JOINTS])
     offsets[0] = 0.0  # the root's position comes from its channels
-    channels = [_ROOT_CHANNELS] + [_CHANNELS] * (len(names) - 1)
+    channels: list[tuple[str, ...]] = [_ROOT_CHANNELS] + [_CHANNELS] * (len(names) - 1)
     end_sites = {names.index(n): np.array(o) for n, o in _END_SITES.items()}
     return Skeleton(names, np.array(parents), offsets, channels, end_sites)
 

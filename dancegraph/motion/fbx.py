@@ -93,7 +93,7 @@ class FbxExporter:
 
     @property
     def pid(self) -> int | None:
-        return self._proc.pid if self.running else None
+        return self._proc.pid if self._proc is not None and self.running else None
 
     def start(self) -> None:
         """Start the child (if not running) and wait until Blender has loaded."""
@@ -161,6 +161,7 @@ class FbxExporter:
             return
         if proc.poll() is None:
             try:
+                assert proc.stdin is not None  # started with stdin=PIPE
                 proc.stdin.write(json.dumps({"id": -1, "op": "quit"}) + "\n")
                 proc.stdin.flush()
                 proc.wait(timeout=5)
@@ -207,6 +208,7 @@ class FbxExporter:
         self._ensure_started()
         self._next_id += 1
         req_id = self._next_id
+        assert self._proc is not None and self._proc.stdin is not None  # started above
         try:
             self._proc.stdin.write(json.dumps({"id": req_id, **payload}) + "\n")
             self._proc.stdin.flush()

@@ -87,7 +87,7 @@ def from_rotvec(v: np.ndarray) -> np.ndarray:
     return np.concatenate((v * scale[..., None], np.cos(half)[..., None]), axis=-1)
 
 
-def from_y_angle(angle: np.ndarray) -> np.ndarray:
+def from_y_angle(angle: np.ndarray | float) -> np.ndarray:
     """Rotations about the world Y (up) axis by ``angle`` radians, ``(..., 4)``."""
     angle = np.asarray(angle, dtype=float)
     q = np.zeros(angle.shape + (4,))
@@ -111,10 +111,11 @@ def from_euler(order: str, degrees: np.ndarray) -> np.ndarray:
     ``Rotation.from_euler(order, ..., degrees=True)``, several times faster on large arrays.
     """
     half = np.radians(degrees) * 0.5
-    out = None
+    out: np.ndarray | None = None
     for k, axis in enumerate(order):
         q = np.zeros(half.shape[:-1] + (4,))
         q[..., "XYZ".index(axis)] = np.sin(half[..., k])
         q[..., 3] = np.cos(half[..., k])
         out = q if out is None else multiply(out, q)
+    assert out is not None, "order names three axes"
     return out

@@ -243,8 +243,11 @@ def analyze(path_or_array: str | os.PathLike | np.ndarray, sr: int | None = None
     for files, which are decoded at 22.05 kHz). Raises ``AudioError`` (codes of
     ``load_audio``, ``no_beat`` when no 4-beat bar can be formed).
     """
+    from dancegraph import jit
     from dancegraph.music.beats import track_beats  # the tracker loads torch: only when used
     from dancegraph.music.decode import load_audio
+
+    jit.ensure("music")  # librosa's kernels load under the cache lock, before the features use them
 
     if isinstance(path_or_array, np.ndarray):
         if sr is None:

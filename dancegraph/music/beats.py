@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import warnings as _warnings
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -141,7 +142,7 @@ FPS = SR / HOP
 
 # thresholds of the "usable beat" test (calibrated on the CC songs, generated music and the
 # non-music clips: see tests/music/test_beats.py)
-NO_BEAT = {
+NO_BEAT: dict[str, Any] = {
     "min_beats": 8,  # fewer decoded beats than this: no beat
     "min_coverage": 0.5,  # beats must span this share of the non-silent audio
     "min_regularity": 0.6,  # share of inter-beat intervals within 10 % of the local median
@@ -157,7 +158,7 @@ NO_BEAT = {
 
 
 # beats on the swung off-beats (see :func:`mend_swing_off_beats`)
-SWING = {
+SWING: dict[str, Any] = {
     "bins": 50,  # beat-phase resolution of the onset profile
     "window": (0.3, 0.7),  # where the eighth note between two beats is looked for (beats)
     "max_phase": 0.46,  # it comes before this, after the grid's own onset lag: swung off-beats
@@ -167,19 +168,19 @@ SWING = {
 }
 
 # a grid at twice the tactus (see :func:`subdivision_strength`)
-DOUBLE = {
+DOUBLE: dict[str, Any] = {
     "bins": 16,  # beat-phase resolution of the onset profile
     "max_subdivision": 0.14,  # nothing between the beats above this share of the beat's onset
     "min_half_bpm": 60.0,  # and the half tempo is still a beat one counts
 }
 
 # a grid on a dotted pulse of the song (see :func:`dotted_pulse`)
-DOTTED = {
+DOTTED: dict[str, Any] = {
     "min_ratio": 1.6,  # the 3:2 / 2:3 level's pulse salience over the tracked level's
 }
 
 # a grid that changes its tempo octave between sections (see :func:`octave_switch`)
-OCTAVE = {
+OCTAVE: dict[str, Any] = {
     "min_share": 0.15,  # each of the two levels held for this share of the grid's span
     "max_between": 0.25,  # tempos between the two for at most this share ...
     "min_jump": 1.35,  # ... and somewhere the tempo changes this much within 4 beats: it jumps
@@ -189,7 +190,7 @@ OCTAVE = {
 LEVEL_BAND = 0.15
 
 # a grid at half the tactus (see :func:`split_beats`)
-SPLIT = {
+SPLIT: dict[str, Any] = {
     "max_bpm": 95.0,  # tracked tempo under which 2 beats per bar may be a half-time count
     "max_contrast": 1.2,  # 4-beat bars whose third beat is marked almost as their first
     # 3-beat bars: the split grid repeats after 3 beats at least as closely as after 6 ...
@@ -199,7 +200,7 @@ SPLIT = {
 }
 
 # beats before the music starts or after it has stopped (see :func:`within_sound`)
-SOUND = {
+SOUND: dict[str, Any] = {
     "min_onset": 0.1,  # an onset: onset strength at least this share of its median at the beats
     "slack": 0.1,  # beats kept up to this share of a beat interval outside the first/last onset
 }
@@ -208,12 +209,12 @@ SOUND = {
 SNARE_BAND_HZ = (1000.0, 5000.0)
 
 # a whole grid on the straight off-beats (see :func:`mend_off_beat_grid`)
-OFF_BEAT = {
+OFF_BEAT: dict[str, Any] = {
     "min_score": 0.83,  # pitched-onset + onset-strength preference for the half-shifted grid
 }
 
 # half-beat slips of the beat grid (see :func:`mend_half_beat_slips`)
-SLIP = {
+SLIP: dict[str, Any] = {
     "window": 4,  # beats each side of a slip
     "min": 0.3,  # phase change over 2 * window beats, in beats, that counts as a slip ...
     "max": 0.7,  # ... up to this
@@ -1049,7 +1050,7 @@ def track_beats(
                 again = None
                 if slow is not None:
                     again = _decode_at_level(act, params, slow, onset_env, evidence)
-                if again is not None:
+                if again is not None and slow is not None:
                     warnings.append(
                         f"beat_level_unified: the decoder counted some sections at twice the "
                         f"tempo of others ({slow:.1f} and {2 * slow:.1f} BPM); decoded again at "
@@ -1113,12 +1114,12 @@ def track_beats(
                 # fast song: every beat is split in two
                 bpm = tempo_from_beats(times)[0]
                 per_bar = int(meters[0])
-                why = None
+                split_why = None
                 if bpm < SPLIT["max_bpm"] and (halve or sub >= DOUBLE["max_subdivision"]):
-                    why = _two_bars_per_bar(
+                    split_why = _two_bars_per_bar(
                         times, positions, per_bar, halve, act, frames, tracked, spec
                     )
-                if why:
+                if split_why:
                     times, positions = split_beats(times, positions, per_bar)
                     frames, tracked = _frames_tracked(times, dec.times)
                     split_meter = 3 if per_bar == 3 else 4
@@ -1128,7 +1129,7 @@ def track_beats(
                         snare_onset=spec.snare_onset,
                     )  # fmt: skip
                     warnings.append(
-                        f"beats_split: {why} at {bpm:.1f} BPM: the beats were half notes; "
+                        f"beats_split: {split_why} at {bpm:.1f} BPM: the beats were half notes; "
                         f"each split in two, {2 * bpm:.1f} BPM, bars regrouped"
                     )
                     warnings.extend(notes)
@@ -1136,6 +1137,7 @@ def track_beats(
     if lib is None and (chosen is None or vote):
         lib = _librosa_beats(spec)
     if chosen is None:
+        assert lib is not None  # run just above whenever no BeatNet grid was chosen
         lt, lp, lm = lib
         ok, why = _usable(lt, None, onset_env, evidence, prefix="librosa")
         if not ok:
@@ -1228,6 +1230,7 @@ def warm_up() -> None:
     """Compile the decoder, load the models and run librosa's kernels once, so the first song
     does not pay for compilation; never raises. Registered as ``music`` with ``dancegraph.jit``,
     which runs it under the kernel cache's lock."""
+    jit.import_cached("librosa.beat")  # its one uncached gufunc, cached (see jit.import_cached)
     barpointer.warm_up()
     try:
         from dancegraph.music.beatnet import load_model

@@ -224,7 +224,7 @@ def load_audio(
     try:
         for block in blocks:
             n_in += len(block)
-            if max_in is not None and n_in > max_in:
+            if max_in is not None and max_seconds is not None and n_in > max_in:
                 raise _err(
                     "audio_too_long",
                     f"longer than the limit of {max_seconds / 60:.1f} min",

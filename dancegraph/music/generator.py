@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import soundfile as sf
@@ -189,13 +190,16 @@ def _tone(sr: int, hz: float, dur: float, kind: str) -> np.ndarray:
         w = np.sin(2 * np.pi * hz * t) + 0.25 * np.sin(4 * np.pi * hz * t)
         env = np.exp(-t * 2.5)
     elif kind == "saw_bass":
-        w = sum(np.sin(2 * np.pi * hz * k * t) / k for k in range(1, 7))
+        w = sum((np.sin(2 * np.pi * hz * k * t) / k for k in range(1, 7)), np.zeros(n))
         env = np.exp(-t * 4)
     elif kind == "pad":
-        w = sum(np.sin(2 * np.pi * hz * k * t) / k**1.5 for k in range(1, 5))
+        w = sum((np.sin(2 * np.pi * hz * k * t) / k**1.5 for k in range(1, 5)), np.zeros(n))
         env = np.minimum(t / 0.06, 1.0) * 0.8
     elif kind == "piano":
-        w = sum(np.sin(2 * np.pi * hz * k * t) * np.exp(-t * k * 1.5) / k for k in range(1, 6))
+        w = sum(
+            (np.sin(2 * np.pi * hz * k * t) * np.exp(-t * k * 1.5) / k for k in range(1, 6)),
+            np.zeros(n),
+        )
         env = np.exp(-t * 3)
     elif kind == "organ":
         w = (
@@ -205,10 +209,10 @@ def _tone(sr: int, hz: float, dur: float, kind: str) -> np.ndarray:
         )
         env = np.minimum(t / 0.01, 1.0) * 0.6
     elif kind == "square_lead":
-        w = sum(np.sin(2 * np.pi * hz * k * t) / k for k in (1, 3, 5, 7))
+        w = sum((np.sin(2 * np.pi * hz * k * t) / k for k in (1, 3, 5, 7)), np.zeros(n))
         env = np.minimum(t / 0.008, 1.0) * np.exp(-t * 2)
     elif kind == "pluck_lead":
-        w = sum(np.sin(2 * np.pi * hz * k * t) / k**2 for k in range(1, 5))
+        w = sum((np.sin(2 * np.pi * hz * k * t) / k**2 for k in range(1, 5)), np.zeros(n))
         env = np.exp(-t * 8)
     else:
         raise ValueError(f"unknown instrument {kind!r}")
@@ -409,7 +413,7 @@ def generate(cfg: SongConfig) -> Song:
         return deg, int(MAJOR[deg % 7] + sec.key_shift)
 
     key_root = 40 + int(rng.integers(0, 8))  # E2..B2
-    truth_bars = []
+    truth_bars: list[dict[str, Any]] = []
     for gbar, (sec, o, b) in enumerate(bar_list):
         start = float(gbar * m)
         deg, root = chord_root(sec, b)

@@ -175,10 +175,10 @@ def estimate_tempo(
             f"tempo_ambiguous: the onset pulse at {strongest['bpm']:.1f} BPM "
             f"({strongest['relation']} of {bpm:.1f}) is stronger than the tracked beat's"
         )
-    sal = {"x1": est.salience} | {
+    by_level = {"x1": est.salience} | {
         a["relation"]: a["salience"] for a in est.alternatives if a["relation"] in ("x2", "x1/2")
     }
-    est.octave = dance_octave(bpm, sal)
+    est.octave = dance_octave(bpm, by_level)
     if est.octave["relation"] != "x1":
         est.warnings.append(
             f"tempo_octave: a dancer would likely count {est.octave['bpm']:.1f} BPM "

@@ -15,12 +15,16 @@ import tempfile
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from services.common.problems import ApiError
 from services.common.uploads import FilePart
+
+if TYPE_CHECKING:
+    from python_multipart.multipart import MultipartCallbacks
 
 MAX_TEXT_BYTES = 1 << 20  # a spec is small; anything bigger is a mistake
 MAX_TEXT_FIELDS = 16
@@ -59,8 +63,8 @@ class _Reader:
         self._text: bytearray | None = None
         self._name = ""
         self._file: FilePart | None = None
-        self._fh = None
-        self._digest = None
+        self._fh: BinaryIO | None = None
+        self._digest: Any = None  # hashlib's sha256 object while a file part streams in
         self._n_text = 0
 
     # python-multipart callbacks -------------------------------------------------------------
@@ -120,6 +124,7 @@ class _Reader:
                     f"{self._file.filename or 'the file'} is larger than {self.max_file_bytes} bytes",
                     field=self._name,
                 )
+            assert self._fh is not None
             self._digest.update(chunk)
             self._fh.write(chunk)
         elif self._text is not None:
@@ -135,6 +140,7 @@ class _Reader:
 
     def on_part_end(self) -> None:
         if self._file is not None:
+            assert self._fh is not None
             self._fh.close()
             self._fh = None
             self._file.sha256 = self._digest.hexdigest()
@@ -174,17 +180,14 @@ async def read_form(
     reader = _Reader(
         tmp_dir, max_file_bytes=max_file_bytes, max_files=max_files, too_many_code=too_many_code
     )
-    callbacks = {
-        name: getattr(reader, name)
-        for name in (
-            "on_part_begin",
-            "on_part_data",
-            "on_part_end",
-            "on_header_field",
-            "on_header_value",
-            "on_header_end",
-            "on_headers_finished",
-        )
+    callbacks: MultipartCallbacks = {
+        "on_part_begin": reader.on_part_begin,
+        "on_part_data": reader.on_part_data,
+        "on_part_end": reader.on_part_end,
+        "on_header_field": reader.on_header_field,
+        "on_header_value": reader.on_header_value,
+        "on_header_end": reader.on_header_end,
+        "on_headers_finished": reader.on_headers_finished,
     }
     try:
         parser = MultipartParser(boundary, callbacks)

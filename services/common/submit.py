@@ -4,7 +4,7 @@ so a refused request leaves nothing behind and a stored job is always enqueued o
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from sqlalchemy import select
 from starlette.datastructures import UploadFile
@@ -14,7 +14,7 @@ from dancegraph.store import ObjectStore
 from services import jobs, webhooks
 from services.common import catalog
 from services.common.problems import ApiError
-from services.common.uploads import CheckedAudio, check_audio
+from services.common.uploads import CheckedAudio, FilePart, check_audio
 from services.config import Settings
 from services.db import session_scope
 from services.models import Batch, Job
@@ -58,7 +58,7 @@ def submit_job(
     *,
     tenant_id: str,
     spec: Spec,
-    upload: UploadFile,
+    upload: UploadFile | FilePart,
     idempotency_key: str | None,
     graphstore,
 ) -> tuple[Job, bool]:
@@ -107,7 +107,7 @@ def submit_batch(
     *,
     tenant_id: str,
     spec: Spec,
-    uploads: list[UploadFile],
+    uploads: Sequence[UploadFile | FilePart],
     idempotency_key: str | None,
     graphstore,
 ) -> tuple[Batch, list[Job], bool]:
@@ -164,7 +164,9 @@ def submit_batch(
             rows.append(job)
     _enqueue_or_remove(settings, store, enqueue, [j.id for j in rows], batch_id=batch.id)
     with session_scope(settings.database_url) as session:
-        return session.get(Batch, batch.id), jobs.batch_jobs(session, batch.id), True
+        fresh = session.get(Batch, batch.id)
+        assert fresh is not None  # written above, never deleted once enqueued
+        return fresh, jobs.batch_jobs(session, batch.id), True
 
 
 def _enqueue_or_remove(

@@ -29,8 +29,9 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import timedelta
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, select, update
 
 from dancegraph.store import ObjectStore
 from services import jobs
@@ -126,11 +127,14 @@ def reap_once(
             if held is not None and held >= len(waiting):
                 waiting = []
         for job_id in waiting:
-            res = session.execute(
-                update(Job)
-                .where(Job.id == job_id, Job.status == QUEUED)
-                .values(stage="requeued", updated_at=now)
-                .execution_options(synchronize_session=False)
+            res = cast(
+                CursorResult[Any],
+                session.execute(
+                    update(Job)
+                    .where(Job.id == job_id, Job.status == QUEUED)
+                    .values(stage="requeued", updated_at=now)
+                    .execution_options(synchronize_session=False)
+                ),
             )
             if res.rowcount == 1:
                 report.reenqueued.append(job_id)

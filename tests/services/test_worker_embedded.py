@@ -29,10 +29,12 @@ def embedded(tmp_path_factory, demo_store):  # noqa: F811
     c = make_cluster(home, db_url, "filesystem://", store_root)
     for name in ("DANCEGRAPH_DATABASE_URL", "DANCEGRAPH_BROKER_URL", "DANCEGRAPH_BROKER_FOLDER"):
         c.env.pop(name)  # --embedded chooses them itself, under DANCEGRAPH_HOME
-    c.start_embedded()
-    c.api_key = create_key(db_url, "acme")
-    yield c
-    c.stop_all()
+    try:  # a start that times out still stops what it started (no orphans loading the machine)
+        c.start_embedded()
+        c.api_key = create_key(db_url, "acme")
+        yield c
+    finally:
+        c.stop_all()
 
 
 def test_job_through_api_in_embedded_mode(embedded, songs, tmp_path):  # noqa: F811
@@ -81,3 +83,20 @@ def test_cancel_while_running_stops_the_worker_and_publishes_nothing(embedded, s
     assert row.status == "cancelled" and row.result is None
     assert not (embedded.store_root / "jobs" / job_id).exists()
     assert not list((embedded.store_root / "tmp").glob(f"job-{job_id}-*"))
+
+
+def test_killed_serve_leaves_no_worker_behind(embedded):
+    """Runs last in this module: SIGKILL only the ``serve`` process; its worker child gets a
+    SIGTERM from the kernel (PR_SET_PDEATHSIG) and ends instead of polling its broker forever."""
+    import os
+    import signal
+
+    from tests.services.test_worker_harness import wait_for
+
+    serve = embedded.procs["serve"]
+    children = Path(f"/proc/{serve.pid}/task/{serve.pid}/children").read_text().split()
+    assert len(children) == 1, children  # the Celery worker's main process
+    worker = int(children[0])
+    os.kill(serve.pid, signal.SIGKILL)
+    serve.wait(timeout=30)
+    wait_for(lambda: not Path(f"/proc/{worker}").exists(), 120, "the worker to stop")

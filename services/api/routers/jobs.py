@@ -5,7 +5,7 @@ from __future__ import annotations
 import base64
 import json
 from datetime import datetime
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -34,11 +34,11 @@ from services.models import CANCELLED, FAILED, SUCCEEDED, Tenant
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
-PROBLEM = {
+PROBLEM: dict[str, Any] = {
     "description": "problem details",
     "content": {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}},
 }
-AUTH_ERRORS = {401: PROBLEM}
+AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: PROBLEM}
 
 IdempotencyKey = Annotated[
     str | None,
@@ -50,7 +50,7 @@ IdempotencyKey = Annotated[
     ),
 ]
 
-UPLOAD_BODY = {
+UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {
         "required": True,
         "content": {

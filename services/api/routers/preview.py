@@ -10,6 +10,8 @@ gzip-encoded when the client accepts it.
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, Depends, Path, Request
 from fastapi.responses import FileResponse, HTMLResponse
 from sqlalchemy.orm import Session
@@ -35,8 +37,8 @@ from services.preview_server import (
 
 router = APIRouter(prefix="/v1/jobs", tags=["preview"])
 
-ERRORS = {401: PROBLEM, 404: PROBLEM, 409: PROBLEM}
-JSON_OK = {200: {"content": {"application/json": {}}}}
+ERRORS: dict[int | str, dict[str, Any]] = {401: PROBLEM, 404: PROBLEM, 409: PROBLEM}
+JSON_OK: dict[int | str, dict[str, Any]] = {200: {"content": {"application/json": {}}}}
 
 
 def preview_job(
