@@ -119,7 +119,7 @@ def resolve_target(url: str, allow: Sequence[str] = ()) -> IpAddress:
         infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM)
     except OSError as exc:
         raise ConnectionError(f"callback host {host!r} does not resolve") from exc
-    addresses = [ipaddress.ip_address(info[4][0].split("%")[0]) for info in infos]
+    addresses = [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
     if not addresses:
         raise ConnectionError(f"callback host {host!r} does not resolve")
     bad = [ip for ip in addresses if not _allowed(ip, allow)]

@@ -185,7 +185,7 @@ def sweep_blobs(store: ObjectStore, older_than_s: float) -> int:
     if not old:
         return 0
     with session_scope() as session:
-        used = set()
+        used: set[str] = set()
         shas = list(old)
         for i in range(0, len(shas), 500):
             used.update(

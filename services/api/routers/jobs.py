@@ -268,7 +268,9 @@ def _result_key(store: ObjectStore, job, name: str, what: str, field: str) -> st
     return key
 
 
-REDIRECT = {307: {"description": "S3 store: the file at a presigned URL (Location)"}}
+REDIRECT: dict[int | str, dict[str, Any]] = {
+    307: {"description": "S3 store: the file at a presigned URL (Location)"}
+}
 
 
 @router.get(
