@@ -31,6 +31,7 @@ REDIS_HOST, REDIS_PORT = "127.0.0.1", 6379
 REDIS_DB = int(os.environ.get("DANCEGRAPH_TEST_REDIS_DB", "11"))
 PG_ADMIN_URL = "postgresql://postgres@127.0.0.1:5432/postgres"
 DATASET = "demo"
+WORKER_START_S = 180.0
 JOB_TIMEOUT_S = 10.0  # the stuck timeout in these tests: the reaper acts within seconds
 FINAL = {"succeeded", "failed", "cancelled"}
 VENV_BIN = Path(sys.executable).parent
@@ -251,9 +252,9 @@ class Cluster:
             "--without-mingle",
         ]
         proc = self._spawn(name, cmd, env)
-        wait_for(
+        wait_for(  # a hang bound, not a speed test: the kernel warm-up is slow on a busy host
             lambda: "worker process ready" in self.log_text(name) or proc.poll() is not None,
-            60,
+            WORKER_START_S,
             f"worker {name} to start",
         )
         assert proc.poll() is None, self.log_text(name)[-3000:]
