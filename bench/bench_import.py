@@ -16,7 +16,7 @@ from collections import Counter
 from dancegraph.motion.dataset import import_dataset, load_dataset, load_manifest
 from dancegraph.paths import REPO_ROOT, shared_dir
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 
 TARGET_S = 60.0
 
@@ -27,7 +27,7 @@ def main() -> int:
         print(f"shared mocap not found at {mocap}; set DANCEGRAPH_SHARED")
         return 0
     with tempfile.TemporaryDirectory(prefix="bench-import-") as tmp:
-        return run(mocap, ObjectStore(tmp))
+        return run(mocap, FileStore(tmp))
 
 
 def run(mocap, store: ObjectStore) -> int:

@@ -35,7 +35,7 @@ from dancegraph.motion.dataset import import_dataset, load_manifest  # noqa: E40
 from dancegraph.music.analysis import MusicAnalysis  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 from dancegraph.spec import Spec  # noqa: E402
-from dancegraph.store import ObjectStore  # noqa: E402
+from dancegraph.store import FileStore  # noqa: E402
 
 EDGES_PER_NODE = 8
 
@@ -177,7 +177,7 @@ def main() -> int:
         return 1
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        store = ObjectStore(Path(tmp) / "store")
+        store = FileStore(Path(tmp) / "store")
         for name in ("cmu-salsa", "cmu-modern"):
             t = time.perf_counter()
             rep = import_dataset(

@@ -47,6 +47,20 @@ def _read_spec(path: str | None, dataset: str | None = None) -> Spec:
     return parse_spec(raw, dataset=dataset)
 
 
+STORE_HELP = (
+    "object store: a folder or s3://bucket/prefix "
+    "(default: DANCEGRAPH_STORE_URL, else DANCEGRAPH_HOME's store)"
+)
+
+
+def open_cli_store(store: str | None):
+    """The ``--store`` given (a folder or ``s3://``), else the one the environment names."""
+    from dancegraph.paths import default_store, store_dir
+    from dancegraph.store import open_store
+
+    return open_store(store, store_dir()) if store else default_store()
+
+
 def _warm_kernels(*modules: str) -> None:
     """Compile or load the kernels of ``modules`` (default: all) under the kernel cache's lock,
     at the start of a command that runs them (``dancegraph.jit``)."""
@@ -107,16 +121,13 @@ def _add_dataset(sub) -> None:
     ds_sub = p.add_subparsers(dest="dataset_command", required=True)
 
     def _store(args):
-        from dancegraph.paths import store_dir
-        from dancegraph.store import ObjectStore
-
-        return ObjectStore(args.store or store_dir())
+        return open_cli_store(args.store)
 
     imp = ds_sub.add_parser("import", help="import a folder of BVH files as a dataset")
     imp.add_argument("dir", help="folder with the motion files (and optionally manifest.yaml)")
     imp.add_argument("--name", required=True, help="dataset name (letters, digits, . _ -)")
     imp.add_argument("--manifest", default=None, help="manifest file (YAML or JSON)")
-    imp.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    imp.add_argument("--store", default=None, help=STORE_HELP)
     imp.add_argument(
         "--json", action="store_true", help="print the report as JSON (default: a table)"
     )
@@ -144,7 +155,7 @@ def _add_dataset(sub) -> None:
     imp.set_defaults(func=_import)
 
     ls = ds_sub.add_parser("list", help="list the stored datasets as JSON")
-    ls.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    ls.add_argument("--store", default=None, help=STORE_HELP)
 
     def _list(args) -> int:
         from dancegraph.motion.dataset import list_datasets
@@ -178,7 +189,7 @@ def _add_dataset(sub) -> None:
     bld.add_argument(
         "--rhythm-model", default=None, help="learned rhythm model file (.dgm): node signatures"
     )
-    bld.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    bld.add_argument("--store", default=None, help=STORE_HELP)
     bld.add_argument("--json", action="store_true", help="print the report as JSON")
 
     def _build(args) -> int:
@@ -343,14 +354,12 @@ def _add_synthesize(sub) -> None:
         "--rig", default=None, help="also write each alternative on this rig (.fbx, .glb, .bvh)"
     )
     p.add_argument("--map", default=None, help="with --rig: joint mapping file (role -> joint)")
-    p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    p.add_argument("--store", default=None, help=STORE_HELP)
 
     def run(args) -> None:
         from dancegraph.graph.artifact import open_graph
-        from dancegraph.paths import store_dir
         from dancegraph.render import synthesize
         from dancegraph.spec import parse_spec
-        from dancegraph.store import ObjectStore
 
         spec = _read_spec(args.spec, dataset=args.dataset)
         if args.alternatives is not None:
@@ -363,7 +372,7 @@ def _add_synthesize(sub) -> None:
             mapping = read_mapping(args.map) if args.map else None
             rig = load_rig(args.rig, mapping=mapping)  # a bad rig fails before any work
             on_rig = RigOutput(rig, args.rig, [*spec.output.formats, "glb"])
-        graph = open_graph(ObjectStore(args.store or store_dir()), args.dataset)
+        graph = open_graph(open_cli_store(args.store), args.dataset)
         _warm_kernels()
         done = synthesize(args.audio, graph, spec, args.out, on_rig=on_rig)
         timeline = done["timeline"]
@@ -408,17 +417,15 @@ def _add_eval(sub) -> None:
         "--result", default=None, help="score an existing synthesize/job result folder instead"
     )
     p.add_argument("--audio-file", default=None, help="with --result: the song, for librosa beats")
-    p.add_argument("--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)")
+    p.add_argument("--store", default=None, help=STORE_HELP)
 
     def run(args) -> int:
         from dancegraph.errors import SpecError
         from dancegraph.eval.harness import evaluate, evaluate_result, load_library, load_song
         from dancegraph.graph.artifact import open_graph
         from dancegraph.motion.dataset import load_dataset
-        from dancegraph.paths import store_dir
-        from dancegraph.store import ObjectStore
 
-        store = ObjectStore(args.store or store_dir())
+        store = open_cli_store(args.store)
         _warm_kernels()
         if args.result:
             from dancegraph.preview import read_timeline

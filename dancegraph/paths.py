@@ -4,7 +4,9 @@
   default's SQLite database and broker folder. Default: the per-user data folder
   (``platformdirs``: ``~/.local/share/dancegraph`` on Linux, ``~/Library/Application
   Support/dancegraph`` on macOS), so every working folder sees the same datasets.
-- ``DANCEGRAPH_STORE_ROOT``: the object store root (default: ``$DANCEGRAPH_HOME/store``).
+- ``DANCEGRAPH_STORE_URL``: the object store, ``s3://bucket/prefix`` (default: the folder below).
+- ``DANCEGRAPH_STORE_ROOT``: the filesystem object store root, or the S3 store's local scratch
+  and cache (default: ``$DANCEGRAPH_HOME/store``).
 - ``NUMBA_CACHE_DIR``: the compiled-kernel cache (default: the per-user cache folder's
   ``numba``, e.g. ``~/.cache/dancegraph/numba``): rebuildable, shared by every data folder, so
   a scratch ``DANCEGRAPH_HOME`` does not compile the kernels again.
@@ -47,3 +49,11 @@ def kernel_cache_dir() -> Path:
 def store_dir() -> Path:
     """Root of the filesystem object store of the embedded default."""
     return Path(os.environ.get("DANCEGRAPH_STORE_ROOT", home_dir() / "store")).resolve()
+
+
+def default_store():
+    """The object store the environment names: ``DANCEGRAPH_STORE_URL`` (S3, ``store_dir()`` as
+    its scratch) or the folder ``store_dir()``."""
+    from dancegraph.store import open_store
+
+    return open_store(os.environ.get("DANCEGRAPH_STORE_URL") or store_dir(), store_dir())

@@ -4,12 +4,15 @@ One pydantic model shared by the API (request validation and ``openapi.yaml``), 
 (``--spec FILE``) and the graph search, and one validator, :func:`parse_spec`, that every entry
 point (API, ``dancegraph.submit`` task, graph-store service, CLI) calls once. Every field has a default, so ``{}`` plus a dataset is a
 valid spec; unknown fields are rejected (``extra="forbid"``) so typos never pass silently.
-Times are seconds from the start of the song; bar indices count from 0.
+Types are strict (``true`` is not 1, ``"3"`` is not 3; an integer is a valid float), numbers
+finite, and every string bounded. Times are seconds from the start of the song; bar indices
+count from 0.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Mapping
 from typing import Annotated, Literal
@@ -19,6 +22,7 @@ from pydantic import (
     ConfigDict,
     Field,
     HttpUrl,
+    UrlConstraints,
     ValidationError,
     field_validator,
     model_validator,
@@ -29,8 +33,13 @@ from dancegraph.errors import SpecError, field_errors
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
 
+MAX_SPEC_DEPTH = 32  # a spec nests 4 deep; anything deeper is an attack or a mistake
+MAX_ID_CHARS = 100  # node ids, take ids, tags: the longest real one is far shorter
+MAX_URL_CHARS = 2000
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 class Weights(_Strict):
@@ -74,7 +83,11 @@ class _Ranged(_Strict):
 class Include(_Ranged):
     """Pin a node (``TAKE:BAR``, optionally ``~AUG``) at the given bars."""
 
-    node: str = Field(..., description="node id, e.g. '60_03:12' or '60_03:12~m' (mirrored)")
+    node: str = Field(
+        ...,
+        max_length=MAX_ID_CHARS,
+        description="node id, e.g. '60_03:12' or '60_03:12~m' (mirrored)",
+    )
 
     @field_validator("node")
     @classmethod
@@ -87,9 +100,13 @@ class Include(_Ranged):
 class Exclude(_Ranged):
     """Never use the matching nodes (optionally only inside a bar or time range)."""
 
-    node: str | None = Field(None, description="node id or take wildcard, e.g. '61_07:*'")
+    node: str | None = Field(
+        None, max_length=MAX_ID_CHARS, description="node id or take wildcard, e.g. '61_07:*'"
+    )
     tag: str | None = Field(
-        None, description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'"
+        None,
+        max_length=MAX_ID_CHARS,
+        description="a node tag, e.g. 'augmented', 'blend', 'shuffle', 'mirror'",
     )
 
     @model_validator(mode="after")
@@ -126,7 +143,9 @@ class SignatureTarget(_Strict):
     """Follow a motif signature: the dataset's own, or a reference take's."""
 
     target: str = Field(
-        "dataset", description="'dataset' or a take id of the dataset, e.g. '60_03'"
+        "dataset",
+        max_length=MAX_ID_CHARS,
+        description="'dataset' or a take id of the dataset, e.g. '60_03'",
     )
     weight: float = Field(0.5, ge=0)
 
@@ -173,10 +192,14 @@ class Spec(_Strict):
     signature: SignatureTarget | None = None
     motifs: list[MotifPin] = Field(default_factory=list, max_length=1000)
     recreate: str | None = Field(
-        None, description="take id whose motif sequence to re-create on this music"
+        None,
+        max_length=MAX_ID_CHARS,
+        description="take id whose motif sequence to re-create on this music",
     )
     output: Output = Field(default_factory=Output)
-    callback_url: HttpUrl | None = None
+    callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(
+        None, description="POSTed when the job ends; must name a public address"
+    )
 
     @model_validator(mode="after")
     def _waypoints_on_stage(self):
@@ -199,17 +222,18 @@ def parse_spec(data: str | bytes | Mapping | Spec | None, *, dataset: str | None
     given it replaces the spec's dataset (a graph-store path or ``--dataset`` wins).
 
     Raises ``SpecError`` (status 422) with ``code`` ``spec_malformed`` (not UTF-8, not JSON, not
-    an object), ``spec_unknown_field`` (a field the model does not know) or ``spec_invalid``;
-    ``field`` is the first failure's path (``spec.weights.rhythm``), ``errors`` all of them.
+    an object, a non-finite number such as ``NaN``, ``Infinity`` or ``1e309``, nesting deeper
+    than ``MAX_SPEC_DEPTH``), ``spec_unknown_field`` (a field the model does not know) or
+    ``spec_invalid`` (also: text with NUL or a lone surrogate, which PostgreSQL's JSON cannot
+    hold); ``field`` is the first failure's path (``spec.weights.rhythm``), ``errors`` all of
+    them.
     """
     if isinstance(data, Spec):
         if dataset is None or dataset == data.dataset:
             return data
         data = data.model_dump(mode="json")
     obj = _decode(data)
-    bad = _nul_path(obj, "spec")
-    if bad is not None:
-        raise SpecError(f"{bad}: text may not contain NUL characters", field=bad)
+    check_json_value(obj)
     if dataset is not None:
         obj = {**obj, "dataset": dataset}
     try:
@@ -237,32 +261,71 @@ def _decode(data: str | bytes | Mapping | None) -> dict:
         return {}
     if isinstance(data, str):
         try:
-            data = json.loads(data)
+            data = json.loads(data, parse_float=_finite, parse_constant=_no_constant)
         except json.JSONDecodeError as exc:
             raise SpecError(
                 f"spec is not valid JSON: {exc.msg} at char {exc.pos}",
                 code="spec_malformed",
                 field="spec",
             ) from exc
+        except RecursionError as exc:
+            raise SpecError(
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                code="spec_malformed",
+                field="spec",
+            ) from exc
+        except ValueError as exc:  # a non-finite number, an integer with too many digits
+            raise SpecError(f"spec: {exc}", code="spec_malformed", field="spec") from exc
     if not isinstance(data, Mapping):
         raise SpecError("spec must be a JSON object", code="spec_malformed", field="spec")
     return dict(data)
 
 
-def _nul_path(value: object, path: str) -> str | None:
-    """The first place in a JSON value holding a NUL character (PostgreSQL cannot store one)."""
-    if isinstance(value, str):
-        return path if "\x00" in value else None
-    if isinstance(value, dict):
-        for key, item in value.items():
-            if "\x00" in str(key):
-                return path
-            found = _nul_path(item, f"{path}.{key}")
-            if found is not None:
-                return found
-    if isinstance(value, list):
-        for i, item in enumerate(value):
-            found = _nul_path(item, f"{path}[{i}]")
-            if found is not None:
-                return found
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:40]} is out of range")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _bad_text(text: str) -> str | None:
+    if "\x00" in text:
+        return "text may not contain NUL characters"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "text may not contain lone UTF-16 surrogates"
     return None
+
+
+def check_json_value(data: object) -> None:
+    """Raise ``SpecError`` for the first thing in a decoded JSON value that PostgreSQL's JSON
+    type cannot store (NUL, a lone surrogate, a non-finite number) or that nests deeper than
+    ``MAX_SPEC_DEPTH``; walks without recursion, so depth alone cannot crash it."""
+    stack: list[tuple[object, str, int]] = [(data, "spec", 1)]
+    while stack:
+        value, path, depth = stack.pop()
+        if depth > MAX_SPEC_DEPTH:
+            raise SpecError(
+                f"spec is nested more than {MAX_SPEC_DEPTH} levels deep",
+                code="spec_malformed",
+                field="spec",
+            )
+        if isinstance(value, str):
+            why = _bad_text(value)
+            if why:
+                raise SpecError(f"{path}: {why}", field=path)
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise SpecError(f"{path}: numbers must be finite", code="spec_malformed", field=path)
+        elif isinstance(value, Mapping):
+            for key, item in value.items():
+                why = _bad_text(str(key))
+                if why:
+                    raise SpecError(f"{path}: key {why}", field=path)
+                stack.append((item, f"{path}.{key}", depth + 1))
+        elif isinstance(value, list | tuple):
+            stack.extend((item, f"{path}[{i}]", depth + 1) for i, item in enumerate(value))

@@ -11,14 +11,22 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from dancegraph.paths import home_dir, store_dir
+from dancegraph.store import ObjectStore, open_store
 
 # Celery queues: analysis+render on one, FBX export (Blender) on its own so each scales apart.
 QUEUE_ANALYSIS = "analysis"
 QUEUE_FBX = "fbx"
+
+# Secrets that ship in public code (the embedded defaults, the old compose fallbacks): a
+# deployment that is not the embedded default refuses to start with one of them.
+DEFAULT_SECRETS = frozenset(
+    {"dancegraph-dev-secret", "dancegraph-dev-preview-secret", "change-me", "change-me-too"}
+)
+MIN_SECRET_CHARS = 32
 
 
 def _default_database_url() -> str:
@@ -55,7 +63,30 @@ class Settings(BaseSettings):
         description="Celery result backend; None: the jobs table is the only record of results",
     )
     store_root: str = Field(
-        default_factory=_default_store_root, description="object store root folder"
+        default_factory=_default_store_root,
+        description="filesystem object store root; with an s3:// store_url, the local scratch "
+        "and read-cache folder",
+    )
+    store_url: str = Field(
+        "",
+        description="'' (the filesystem store at store_root) or s3://bucket/prefix (endpoint and "
+        "credentials: AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION)",
+    )
+    s3_public_endpoint_url: str = Field(
+        "",
+        description="endpoint that presigned download URLs name, when clients reach the S3 "
+        "server under another address than the services do ('' = the same)",
+    )
+    presigned_url_ttl_s: int = Field(900, gt=0, description="lifetime of a presigned download URL")
+    min_free_bytes: int = Field(
+        512 * 1024 * 1024,
+        ge=0,
+        description="/readyz answers not ready when the store's (or scratch) disk has less free",
+    )
+    db_pool_size: int = Field(10, ge=1, description="PostgreSQL connections kept per process")
+    db_max_overflow: int = Field(10, ge=0, description="extra connections under load")
+    db_pool_timeout_s: float = Field(
+        5.0, gt=0, description="wait for a free connection before answering 503 database_busy"
     )
     graphstore_url: str = Field(
         "local", description="'local' (in-process LocalGraphStore) or the graph store's http(s) URL"
@@ -77,7 +108,13 @@ class Settings(BaseSettings):
     job_max_attempts: int = Field(3, ge=1, description="tries of a job before it fails for good")
     webhook_secret: str = Field(
         "dancegraph-dev-secret",
-        description="HMAC-SHA256 key of webhook signatures (set in production!)",
+        description="HMAC-SHA256 key of webhook signatures; outside the embedded default a "
+        f"private value of at least {MIN_SECRET_CHARS} characters is required",
+    )
+    webhook_allow_networks: list[str] = Field(
+        default_factory=list,
+        description="networks (CIDR) a callback_url may point into although they are not public, "
+        "e.g. ['127.0.0.1/32'] for a local test receiver; empty: public addresses only",
     )
     webhook_max_attempts: int = Field(5, ge=1)
     webhook_timeout_s: float = Field(10.0, gt=0)
@@ -86,7 +123,8 @@ class Settings(BaseSettings):
     )
     preview_secret: str = Field(
         "dancegraph-dev-preview-secret",
-        description="HMAC-SHA256 key of the preview page's ?token= links (set in production!)",
+        description="HMAC-SHA256 key of the preview page's ?token= links; outside the embedded "
+        f"default a private value of at least {MIN_SECRET_CHARS} characters is required",
     )
     preview_token_ttl_s: int = Field(
         4 * 3600, gt=0, description="lifetime of a preview link handed out with a job"
@@ -100,6 +138,21 @@ class Settings(BaseSettings):
         description="compile/load the numeric kernels when a worker or graph store starts "
         "(dancegraph.jit), so the first song does not pay ~25 s of compilation",
     )
+
+    @model_validator(mode="after")
+    def _refuse_public_secrets(self) -> Settings:
+        # A deployment that is not the embedded default (SQLite + filesystem broker) is reachable
+        # by others: a secret from public code would let anyone forge webhooks and preview links.
+        if self.is_sqlite and self.is_embedded_broker:
+            return self
+        for name in ("webhook_secret", "preview_secret"):
+            value = getattr(self, name)
+            if value in DEFAULT_SECRETS or len(value) < MIN_SECRET_CHARS:
+                raise ValueError(
+                    f"DANCEGRAPH_{name.upper()} must be set to a private value of at least "
+                    f"{MIN_SECRET_CHARS} characters outside the embedded default"
+                )
+        return self
 
     @property
     def is_sqlite(self) -> bool:
@@ -123,6 +176,17 @@ class Settings(BaseSettings):
             "processed_folder": str(processed),
             "store_processed": False,
         }
+
+
+def object_store(settings: Settings) -> ObjectStore:
+    """The object store the settings name: S3 (``store_url``) with ``store_root`` as its local
+    scratch and cache, or the filesystem store at ``store_root``; one per process and URL."""
+    return _object_store(settings.store_url or settings.store_root, settings.store_root)
+
+
+@lru_cache(maxsize=4)
+def _object_store(url: str, scratch: str) -> ObjectStore:
+    return open_store(url, scratch)
 
 
 @lru_cache(maxsize=1)

@@ -28,7 +28,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from dancegraph.errors import NotFoundError
-from dancegraph.store import check_key
+from dancegraph.store import ObjectStore, check_key
 from services.models import (
     CANCELLED,
     FAILED,
@@ -361,8 +361,33 @@ def requeue_job(session: Session, job_id: str) -> bool:
 
 
 def result_key(job_id: str, name: str = "") -> str:
-    """Object-store key of a job's result file ``name`` (e.g. ``alternatives/0.bvh``), or its folder."""
+    """Object-store key of a job's result prefix (``name`` empty) or of a file under it that is
+    not part of the published result (e.g. the preview's pose cache)."""
     return check_key(f"jobs/{job_id}/{name}".rstrip("/"))
+
+
+def result_files(store: ObjectStore, job_id: str) -> dict[str, str]:
+    """The published result of a job (``ObjectStore.publish``): file name
+    (``alternatives/0.bvh``, ``timeline.json``) → object key; empty while nothing is published."""
+    return store.published(result_key(job_id)) or {}
+
+
+def bvh_files(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[str]:
+    """Names of a job's published BVH files in order of k: the library skeleton's
+    ``alternatives/<k>.bvh``, or with ``rig`` the job rig's ``alternatives/<k>.rig.bvh``."""
+    tail = ".rig.bvh" if rig else ".bvh"
+    names = []
+    for name in result_files(store, job_id):
+        folder, _, base = name.rpartition("/")
+        if folder == "alternatives" and base.endswith(tail) and base[: -len(tail)].isdigit():
+            names.append(name)
+    return sorted(names, key=lambda n: int(n.rsplit("/", 1)[1][: -len(tail)]))
+
+
+def unreferenced(session: Session, audio_keys: list[str]) -> list[str]:
+    """The upload keys among ``audio_keys`` that no job row references (safe to remove)."""
+    used = set(session.scalars(select(Job.audio_key).where(Job.audio_key.in_(set(audio_keys)))))
+    return sorted(set(audio_keys) - used)
 
 
 # --- batches --------------------------------------------------------------------------------

@@ -123,6 +123,12 @@ class Job(Base):
     error_message: Mapped[str | None] = mapped_column(Text, nullable=True)
     error_field: Mapped[str | None] = mapped_column(String(200), nullable=True)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    crashes: Mapped[int] = mapped_column(
+        Integer,
+        default=0,
+        server_default="0",
+        comment="times the reaper found the job abandoned by its worker",
+    )
     worker: Mapped[str | None] = mapped_column(
         String(200), nullable=True, comment="hostname/pid running it"
     )

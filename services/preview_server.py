@@ -34,7 +34,7 @@ from dancegraph.preview import (
     read_timeline,
 )
 from dancegraph.render import TIMELINE
-from dancegraph.store import ObjectStore, file_sha256
+from dancegraph.store import FileStore, ObjectStore, file_sha256
 from services.common import problems
 from services.common.problems import ApiError
 
@@ -136,9 +136,9 @@ def _gzip(data: bytes) -> bytes:
     return gzip.compress(data, compresslevel=6, mtime=0)  # mtime 0: same input, same bytes
 
 
-def json_file_response(request: Request, path: Path) -> Response:
-    """``json_response`` of a JSON file (compressed per request: the timeline is small)."""
-    return json_response(request, _gzip(path.read_bytes()))
+def json_bytes_response(request: Request, data: bytes) -> Response:
+    """``json_response`` of a JSON document's bytes (compressed per request: a timeline is small)."""
+    return json_response(request, _gzip(data))
 
 
 def pose_cache_key(prefix: str, bvh: Path) -> str:
@@ -202,7 +202,7 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
     app = FastAPI(title="DanceGraph preview", openapi_url=None, docs_url=None, redoc_url=None)
     # the pose tracks' cache lives as long as the server (removed when the app is collected)
     app.state.pose_cache = tempfile.TemporaryDirectory(prefix="dancegraph-preview-")
-    cache = ObjectStore(app.state.pose_cache.name)
+    cache = FileStore(app.state.pose_cache.name)
     problems.install(app)
     app.include_router(static_router)
 
@@ -223,7 +223,7 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
 
     @app.get("/timeline.json")
     def timeline_file(request: Request):
-        return json_file_response(request, folder / TIMELINE)
+        return json_bytes_response(request, (folder / TIMELINE).read_bytes())
 
     @app.get("/poses/{k}.json")
     def poses(

@@ -25,7 +25,7 @@ from pathlib import Path
 import httpx
 
 from dancegraph.paths import REPO_ROOT, shared_dir
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 
 SALSA_SONG = "Kevin_MacLeod_-_Vibe_Ace.hq.ogg"
 
@@ -99,7 +99,7 @@ def run(out_dir: str, formats: list[str], say=print) -> dict:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per poll is noise here
     os.environ.update(embedded.child_env(settings))
     embedded.prepare(settings)
-    store = ObjectStore(settings.store_root)
+    store = FileStore(settings.store_root)
     dataset, song = prepare_library(store, Path(settings.store_root).parent, say)
 
     port = _free_port()

@@ -11,22 +11,35 @@ Wire format (documented in docs/tasks.md):
 A delivery succeeds on any 2xx answer. Connection errors, timeouts, 408, 429 and 5xx are
 retried with exponential backoff (``base_delay · 2^n``, capped at ``max_delay``) up to
 ``attempts`` tries in all; any other status is final (the receiver said no).
+
+Targets (no internal port scanner): a ``callback_url`` must name a public address. Loopback,
+private, link-local (cloud metadata 169.254.169.254), carrier-grade NAT, multicast and reserved
+addresses, and metadata host names, are refused at submit (``check_callback_url``: 422
+``callback_url_forbidden``) and again at send time after DNS resolution (``resolve_target``),
+and the POST goes to the address that was checked (no second lookup to rebind). Redirects are
+never followed. ``Settings.webhook_allow_networks`` lists networks allowed anyway (a local test
+receiver). What a receiver answered is recorded as its status code only, never its body.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import ipaddress
 import json
 import logging
+import socket
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
+
+from dancegraph.errors import DanceGraphError
 
 log = logging.getLogger("dancegraph.webhooks")
 
@@ -34,6 +47,101 @@ SIGNATURE_HEADER = "X-DanceGraph-Signature"
 EVENT_HEADER = "X-DanceGraph-Event"
 DELIVERY_HEADER = "X-DanceGraph-Delivery"
 _RETRY_STATUSES = {408, 429}
+# Names that reach a cloud's instance metadata or this very host, whatever DNS says.
+_FORBIDDEN_NAMES = {
+    "localhost",
+    "metadata",
+    "metadata.google.internal",
+    "metadata.goog",
+    "instance-data",
+    "instance-data.ec2.internal",
+}
+_FORBIDDEN_SUFFIXES = (".localhost", ".internal", ".local")
+
+IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
+
+
+class CallbackForbidden(DanceGraphError):
+    """A callback_url that points at a non-public address (SSRF guard)."""
+
+    code = "callback_url_forbidden"
+    status = 422
+
+
+def _allowed(ip: IpAddress, allow: Sequence[str]) -> bool:
+    if ip.version == 6 and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    if any(ip in ipaddress.ip_network(net, strict=False) for net in allow):
+        return True
+    return ip.is_global and not ip.is_multicast
+
+
+def _host(url: str) -> str:
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise CallbackForbidden(
+            "callback_url must be an http(s) URL with a host", field="spec.callback_url"
+        )
+    return parts.hostname.rstrip(".").lower()
+
+
+def check_callback_url(url: str, allow: Sequence[str] = ()) -> None:
+    """Refuse (``CallbackForbidden``, 422 ``callback_url_forbidden``) a callback URL whose host
+    is a non-public IP literal or a local/metadata host name; names are resolved at send time."""
+    host = _host(url)
+    try:
+        ip = ipaddress.ip_address(host.strip("[]"))
+    except ValueError:
+        if host in _FORBIDDEN_NAMES or host.endswith(_FORBIDDEN_SUFFIXES):
+            raise CallbackForbidden(
+                f"callback_url host {host!r} is a local or metadata name",
+                field="spec.callback_url",
+            ) from None
+        return
+    if not _allowed(ip, allow):
+        raise CallbackForbidden(
+            f"callback_url points at a non-public address ({ip})", field="spec.callback_url"
+        )
+
+
+def resolve_target(url: str, allow: Sequence[str] = ()) -> IpAddress:
+    """The address to POST to: ``url``'s host resolved, every address checked as at submit.
+
+    Raises ``CallbackForbidden`` when any resolved address is not public (a name that resolves
+    to one private address among public ones is refused too), ``ConnectionError`` when the
+    name does not resolve.
+    """
+    check_callback_url(url, allow)
+    parts = urlsplit(url)
+    host = _host(url)
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM)
+    except OSError as exc:
+        raise ConnectionError(f"callback host {host!r} does not resolve") from exc
+    addresses = [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
+    if not addresses:
+        raise ConnectionError(f"callback host {host!r} does not resolve")
+    bad = [ip for ip in addresses if not _allowed(ip, allow)]
+    if bad:
+        raise CallbackForbidden(
+            f"callback_url host {host!r} resolves to a non-public address ({bad[0]})",
+            field="spec.callback_url",
+        )
+    return addresses[0]
+
+
+def _pinned(url: str, ip: IpAddress) -> tuple[str, dict, dict]:
+    """``url`` with its host replaced by the checked ``ip``; the Host header and TLS server
+    name keep the original host, so virtual hosts and certificates work as before."""
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    port = f":{parts.port}" if parts.port else ""
+    netloc = (f"[{ip}]" if ip.version == 6 else str(ip)) + port
+    target = parts._replace(netloc=netloc).geturl()
+    host_header = (f"[{host}]" if ":" in host else host) + port
+    extensions = {"sni_hostname": host} if parts.scheme == "https" else {}
+    return target, {"Host": host_header}, extensions
 
 
 def sign(body: bytes, secret: str) -> str:
@@ -87,11 +195,14 @@ def deliver(
     timeout: float = 10.0,
     delivery_id: str | None = None,
     sleep: Callable[[float], None] = time.sleep,
+    allow_networks: Sequence[str] = (),
 ) -> DeliveryResult:
     """POST ``body`` to ``url`` signed with ``secret``; retry transient failures, bounded.
 
-    Never raises for delivery problems: the outcome is in the returned DeliveryResult (a job's
-    result does not depend on whether its webhook got through).
+    The host is resolved and checked before every try (``resolve_target``); a forbidden target
+    is a final failure ``callback_url_forbidden``. Never raises for delivery problems: the
+    outcome is in the returned DeliveryResult (a job's result does not depend on whether its
+    webhook got through).
     """
     delivery_id = delivery_id or str(uuid.uuid4())
     headers = {
@@ -106,9 +217,19 @@ def deliver(
         for attempt in range(max(1, attempts)):
             result.attempts = attempt + 1
             try:
-                response = client.post(url, content=body, headers=headers)
-            except httpx.HTTPError as exc:
-                result.status_code, result.error = None, f"{type(exc).__name__}: {exc}"
+                target, extra, extensions = _pinned(url, resolve_target(url, allow_networks))
+                response = client.post(
+                    target, content=body, headers={**headers, **extra}, extensions=extensions
+                )
+            except CallbackForbidden as exc:
+                result.status_code, result.error = None, f"{exc.code}: {exc.message}"
+                result.retryable = False
+                result.history.append(result.error)
+                log.warning("webhook target refused", extra={"url": url, "error": exc.message})
+                break
+            except (httpx.HTTPError, ConnectionError) as exc:
+                # the kind of failure only: the exception text may echo internal details
+                result.status_code, result.error = None, f"connection failed ({type(exc).__name__})"
                 retry = True
             else:
                 result.status_code, result.error = response.status_code, None
@@ -198,6 +319,7 @@ def deliver_job_webhook(
         attempts=1,
         timeout=settings.webhook_timeout_s,
         delivery_id=delivery_id,
+        allow_networks=settings.webhook_allow_networks,
     )
     values: dict[str, Any] = {
         "webhook_attempts": Job.webhook_attempts + 1,

@@ -9,13 +9,13 @@ from dancegraph.graph.build import build_graph
 from dancegraph.motion.dataset import import_dataset, load_dataset
 from dancegraph.motion.demo import write_demo_library
 from dancegraph.music.generator import Song, generate_song, write_song
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 
 
 def demo_store(root: Path, build: bool = True) -> ObjectStore:
     """A store under ``root/store`` holding the demo library as dataset ``demo`` (and, with
     ``build``, its graph)."""
-    store = ObjectStore(root / "store")
+    store = FileStore(root / "store")
     lib = write_demo_library(root / "lib")
     import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
     if build:

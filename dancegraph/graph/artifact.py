@@ -39,7 +39,6 @@ import json
 import os
 import re
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -274,58 +273,54 @@ def write_graph(
     missing = [a for a in ARRAYS if a not in arrays]
     if missing:
         raise ValueError(f"graph arrays missing: {missing}")
-    base = store.path(graph_key(name))
-    base.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=base, prefix=".tmp-build-"))
-    checksums = {}
-    digest = hashlib.sha256()
-    for key, arr in arrays.items():
-        path = tmp / f"{key}.npy"
-        np.save(path, np.ascontiguousarray(arr), allow_pickle=False)
-        checksums[f"{key}.npy"] = file_sha256(path)
-        digest.update(checksums[f"{key}.npy"].encode())
-    if node_ids is not None:
-        if len(node_ids) != arrays["node_clip"].shape[0]:
-            raise ValueError("node_ids must name every node")
-        (tmp / "node_ids.txt").write_text("\n".join(node_ids))
-        checksums["node_ids.txt"] = file_sha256(tmp / "node_ids.txt")
-        digest.update(checksums["node_ids.txt"].encode())
-    auto_named = version is None
-    if version is None:
-        version = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + digest.hexdigest()[:8]
-    if not _VERSION_RE.match(version):
-        raise ValueError(f"invalid graph version {version!r}")
-    manifest = dict(manifest)
-    manifest.update(
-        {
-            "format": FORMAT_VERSION,
-            "name": name,
-            "version": version,
-            "arrays": sorted(arrays),
-            "node_ids_file": "node_ids.txt" if node_ids is not None else None,
-            "checksums": checksums,
-            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        }
-    )
-    (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=_json_default))
-    final = base / version
+    tmp = store.temp_dir("build")
     try:
-        if final.exists():
-            raise FileExistsError(f"graph version {name}/{version} already exists")
-        os.replace(tmp, final)
-    except OSError as exc:  # exists, or a concurrent writer renamed the same version first
-        if not (auto_named and _same_checksums(final, checksums)):
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise FileExistsError(f"graph version {name}/{version} already exists") from exc
+        checksums = {}
+        digest = hashlib.sha256()
+        for key, arr in arrays.items():
+            path = tmp / f"{key}.npy"
+            np.save(path, np.ascontiguousarray(arr), allow_pickle=False)
+            checksums[f"{key}.npy"] = file_sha256(path)
+            digest.update(checksums[f"{key}.npy"].encode())
+        if node_ids is not None:
+            if len(node_ids) != arrays["node_clip"].shape[0]:
+                raise ValueError("node_ids must name every node")
+            (tmp / "node_ids.txt").write_text("\n".join(node_ids))
+            checksums["node_ids.txt"] = file_sha256(tmp / "node_ids.txt")
+            digest.update(checksums["node_ids.txt"].encode())
+        auto_named = version is None
+        if version is None:
+            version = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + digest.hexdigest()[:8]
+        if not _VERSION_RE.match(version):
+            raise ValueError(f"invalid graph version {version!r}")
+        manifest = dict(manifest)
+        manifest.update(
+            {
+                "format": FORMAT_VERSION,
+                "name": name,
+                "version": version,
+                "arrays": sorted(arrays),
+                "node_ids_file": "node_ids.txt" if node_ids is not None else None,
+                "checksums": checksums,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            }
+        )
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1, default=_json_default))
+        key = graph_key(name, version)
+        # the manifest goes last and only if absent: a reader sees a whole version or none
+        if not store.put_tree(key, tmp, last="manifest.json"):
+            if not (auto_named and _same_checksums(store, key, checksums)):
+                raise FileExistsError(f"graph version {name}/{version} already exists")
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if make_current:
         set_current(store, name, version)
     return graph_key(name, version)
 
 
-def _same_checksums(folder: Path, checksums: dict) -> bool:
+def _same_checksums(store: ObjectStore, key: str, checksums: dict) -> bool:
     try:
-        stored = json.loads((folder / "manifest.json").read_text())
+        stored = json.loads(store.get_bytes(f"{key}/manifest.json"))
     except (OSError, ValueError):
         return False
     return stored.get("checksums") == checksums
@@ -341,7 +336,7 @@ def _json_default(obj):
 
 def set_current(store: ObjectStore, name: str, version: str) -> None:
     """Point ``graphs/<name>/current`` at ``version`` (atomic replace)."""
-    if not store.path(graph_key(name, version)).is_dir():
+    if not store.exists(f"{graph_key(name, version)}/manifest.json"):
         raise NotFoundError(
             f"graph {name!r} has no version {version!r}", code="unknown_graph", field="version"
         )
@@ -351,30 +346,38 @@ def set_current(store: ObjectStore, name: str, version: str) -> None:
 def current_version(store: ObjectStore, name: str) -> str:
     """The version ``current`` points at; NotFoundError(code='unknown_dataset') when none."""
     try:
-        path = store.path(f"{graph_key(name)}/current")
+        return store.get_bytes(f"{graph_key(name)}/current").decode().strip()
     except ValueError as exc:
         raise NotFoundError(
             f"invalid graph name {name!r}", code="unknown_dataset", field="dataset"
         ) from exc
-    if not path.is_file():
+    except FileNotFoundError:
         raise NotFoundError(
             f"no graph built for dataset {name!r}", code="unknown_dataset", field="dataset"
-        )
-    return path.read_text().strip()
+        ) from None
 
 
 def list_versions(store: ObjectStore, name: str) -> list[str]:
-    base = store.path(graph_key(name))
-    if not base.is_dir():
-        return []
-    return sorted(p.name for p in base.iterdir() if p.is_dir() and not p.name.startswith("."))
+    return store.children(graph_key(name))
 
 
 def list_graphs(store: ObjectStore) -> list[str]:
-    base = store.root / "graphs"
-    if not base.is_dir():
-        return []
-    return sorted(p.name for p in base.iterdir() if (p / "current").is_file())
+    return [n for n in store.children("graphs") if store.exists(f"{graph_key(n)}/current")]
+
+
+def graph_folder(store: ObjectStore, name: str, version: str) -> Path:
+    """A local folder of the graph version (the store's own, or a download), with the learned
+    model files its manifest names fetched beside it (``embed.learned.store_root``)."""
+    folder = store.local_dir(graph_key(name, version))
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return folder  # load_graph names the problem
+    entry = manifest.get("embedding") or {}
+    for kind in ("style_model", "rhythm_model"):
+        if isinstance(entry, dict) and isinstance(entry.get(kind), dict) and entry[kind].get("key"):
+            store.local_path(entry[kind]["key"])
+    return folder
 
 
 def load_graph(path: str | os.PathLike, *, verify: bool = False, mmap: bool = True) -> MotionGraph:
@@ -422,7 +425,7 @@ def load_graph(path: str | os.PathLike, *, verify: bool = False, mmap: bool = Tr
 def load_current(store: ObjectStore, name: str, *, verify: bool = False) -> MotionGraph:
     """Load the version ``graphs/<name>/current`` points at."""
     version = current_version(store, name)
-    return load_graph(store.path(graph_key(name, version)), verify=verify)
+    return load_graph(graph_folder(store, name, version), verify=verify)
 
 
 def open_graph(store: ObjectStore, name: str, version: str | None = None) -> MotionGraph:
@@ -436,7 +439,7 @@ def open_graph(store: ObjectStore, name: str, version: str | None = None) -> Mot
         graph = load_current(store, name)
     else:
         try:
-            graph = load_graph(store.path(graph_key(name, version)))
+            graph = load_graph(graph_folder(store, name, version))
         except (ValueError, NotFoundError) as exc:
             raise NotFoundError(
                 f"dataset {name!r} has no graph version {version!r}",

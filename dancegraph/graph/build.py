@@ -868,7 +868,7 @@ def build_dataset_graph(
             raise ModelFileError(f"{m.path} is a {m.kind} model, expected a {kind} model")
     dataset = load_dataset(store, name)
     key = build_graph(dataset, store, params, progress, style, rhythm)
-    graph = artifact.load_graph(store.path(key))
+    graph = artifact.load_graph(store.local_dir(key))
     return {
         "key": key,
         "version": graph.version,

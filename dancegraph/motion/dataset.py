@@ -982,12 +982,9 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
 def list_datasets(store: ObjectStore) -> list[dict]:
     """Summaries of the stored datasets: name, version, clips, bars, joints, licence."""
     out: list[dict] = []
-    base = store.root / "datasets"
-    if not base.is_dir():
-        return out
-    for d in sorted(p for p in base.iterdir() if p.is_dir()):
+    for name in store.children("datasets"):
         try:
-            ds = load_dataset(store, d.name)
+            ds = load_dataset(store, name)
         except DanceGraphError:
             continue
         out.append(

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from contextlib import asynccontextmanager
 from functools import cached_property
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
 from dancegraph import __version__
@@ -22,7 +22,7 @@ from dancegraph.store import ObjectStore
 from services.api import metrics
 from services.api.routers import batches, datasets, health, jobs, preview, rigs
 from services.common import problems
-from services.config import Settings, get_settings
+from services.config import Settings, get_settings, object_store
 from services.preview_server import static_router
 
 log = logging.getLogger("dancegraph.api")
@@ -46,9 +46,11 @@ offending `field`; a failed job carries the same codes in `error`:
 | 413 | `upload_too_large`, `spec_too_large` | over the size limit (checked while streaming) |
 | 415 | `content_type_unsupported`, `audio_undecodable`, `audio_unsupported_codec` | not multipart, not audio |
 | 422 | `audio_missing`, `audio_multiple`, `audio_empty`, `audio_too_short`, `audio_too_long` | the audio part |
-| 422 | `spec_malformed`, `spec_invalid`, `spec_unknown_field`, `unknown_dataset` | the spec part |
+| 422 | `spec_malformed`, `spec_invalid`, `spec_unknown_field`, `unknown_dataset` | the spec part (also: non-finite numbers, text PostgreSQL cannot store, nesting deeper than 32, loose types) |
+| 422 | `callback_url_forbidden` | a `callback_url` at a loopback, private, link-local or metadata address |
 | 422 | `request_invalid`, `cursor_invalid`, `batch_too_large` | query, headers, batch size |
-| 503 | `queue_unavailable` | the broker is down; nothing was kept |
+| 503 | `queue_unavailable` | the broker is down; nothing was kept (`Retry-After`) |
+| 503 | `database_busy`, `database_unavailable`, `store_unavailable` | a burst or an outage: try again after `Retry-After` |
 | 503 | `preview_not_built` | the preview page's front end is not built on this server |
 
 Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`."""
@@ -81,7 +83,7 @@ class AppContext:
 
     @cached_property
     def store(self) -> ObjectStore:
-        return ObjectStore(self.settings.store_root)
+        return object_store(self.settings)
 
     def graphstore(self):
         """The graph store client per ``Settings.graphstore_url``; None when none is available."""
@@ -118,7 +120,16 @@ def create_app(
             configure(
                 os.environ.get("DANCEGRAPH_LOG_LEVEL", "INFO"), json_logs=ctx.settings.log_json
             )
-        import dancegraph.music.decode  # noqa: F401  (warm: the first upload should not pay the import)
+        # Warm what the first uploads would otherwise import under the import lock all at once
+        # (a burst on a fresh process queued seconds behind it): the decoder, the graph-store
+        # client, the broker transport.
+        import dancegraph.music.decode  # noqa: F401
+
+        ctx.graphstore()
+        if ctx.enqueue is None:
+            from services.worker.enqueue import warm_up as warm_broker
+
+            warm_broker()
 
         do_migrate = ctx.settings.is_sqlite if migrate is None else migrate
         if do_migrate:
@@ -148,15 +159,7 @@ def create_app(
         app.include_router(module.router)
     app.include_router(static_router)
 
-    @app.middleware("http")
-    async def _observe(request: Request, call_next):
-        start = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        template = getattr(route, "path", "unmatched")
-        metrics.HTTP_REQUESTS.labels(request.method, template, str(response.status_code)).inc()
-        metrics.HTTP_LATENCY.labels(request.method, template).observe(time.perf_counter() - start)
-        return response
+    app.add_middleware(ObserveMiddleware)
 
     def openapi():
         if app.openapi_schema is None:
@@ -187,6 +190,44 @@ def create_app(
 
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented override
     return app
+
+
+class ObserveMiddleware:
+    """Request metrics, and the last word on an unexpected error (a pure ASGI middleware).
+
+    An error that escapes the app is answered with the 500 problem here and *not* raised on:
+    Starlette's outermost error middleware would send the same 500 and then re-raise, and
+    uvicorn closes a connection whose request raised, so the client's next request on that
+    keep-alive connection would find it reset.
+    """
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        state = {"status": 500, "started": False}
+
+        async def send_wrapper(message):
+            if message["type"] == "http.response.start":
+                state["status"], state["started"] = message["status"], True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        except Exception:
+            log.exception("unhandled error on %s %s", scope.get("method"), scope.get("path"))
+            if state["started"]:
+                raise  # half a response is out: only closing the connection can end it
+            await problems.internal_error_response(scope.get("path"))(scope, receive, send)
+        finally:
+            template = getattr(scope.get("route"), "path", "unmatched")
+            method = scope.get("method", "")
+            metrics.HTTP_REQUESTS.labels(method, template, str(state["status"])).inc()
+            metrics.HTTP_LATENCY.labels(method, template).observe(time.perf_counter() - start)
 
 
 def _problem_validation_responses(schema: dict) -> None:

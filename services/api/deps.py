@@ -15,7 +15,7 @@ from services import jobs
 from services.api.preview_tokens import check_token
 from services.common.problems import ApiError
 from services.config import Settings
-from services.db import get_sessionmaker
+from services.db import get_sessionmaker, session_scope
 from services.models import Tenant
 
 _api_key_header = APIKeyHeader(
@@ -48,8 +48,13 @@ def get_api_key(
     return api_key or (bearer.credentials if bearer is not None else None)
 
 
-def get_tenant(key: str | None = Depends(get_api_key), db: Session = Depends(get_db)) -> Tenant:
-    """The tenant owning the request's API key; 401 when the key is missing or unknown."""
+def get_tenant(request: Request, key: str | None = Depends(get_api_key)) -> Tenant:
+    """The tenant owning the request's API key; 401 when the key is missing or unknown.
+
+    The key check takes a connection of its own and gives it back at once (the tenant comes
+    back detached): a request must not hold one connection for its whole life while its work
+    takes others, or a burst of uploads exhausts the pool.
+    """
     challenge = {"WWW-Authenticate": 'Bearer realm="dancegraph"'}
     if not key:
         raise ApiError(
@@ -59,7 +64,10 @@ def get_tenant(key: str | None = Depends(get_api_key), db: Session = Depends(get
             field="header.X-API-Key",
             headers=challenge,
         )
-    tenant = jobs.tenant_for_key(db, key)
+    with session_scope(request.app.state.ctx.settings.database_url) as session:
+        tenant = jobs.tenant_for_key(session, key)
+        if tenant is not None:
+            session.expunge(tenant)
     if tenant is None:
         raise ApiError(
             401,
@@ -73,13 +81,13 @@ def get_tenant(key: str | None = Depends(get_api_key), db: Session = Depends(get
 
 def get_tenant_or_preview_token(
     job_id: str,
+    request: Request,
     token: str | None = Query(
         None,
         max_length=200,
         description="signed preview token from the job's preview_url (instead of an API key)",
     ),
     key: str | None = Depends(get_api_key),
-    db: Session = Depends(get_db),
     settings: Settings = Depends(get_settings_dep),
 ) -> Tenant | None:
     """Auth of the preview routes: the tenant when the request carries an API key (401 as
@@ -87,7 +95,7 @@ def get_tenant_or_preview_token(
     ``job_id`` (401 ``preview_token_invalid`` / ``preview_token_expired``;
     ``services.api.preview_tokens``). Neither key nor token: 401 ``auth_missing``."""
     if key or not token:
-        return get_tenant(key, db)
+        return get_tenant(request, key)
     check_token(settings, job_id, token)
     return None
 

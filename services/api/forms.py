@@ -56,7 +56,7 @@ async def read_multipart(
     return await read_form(
         _limited(request.stream(), limit),
         ctype,
-        store.root / "tmp",
+        store.scratch,
         max_file_bytes=settings.max_upload_bytes,
         max_files=max_audio + 1,  # the spec may come as a file part too
         too_many_code="batch_too_large" if max_audio > 1 else "audio_multiple",

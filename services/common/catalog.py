@@ -4,8 +4,10 @@ graph store (which knows the built graphs) when a name is not known yet."""
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from services import jobs
@@ -15,6 +17,9 @@ log = logging.getLogger("dancegraph.api")
 
 _REFRESH_EVERY_S = 5.0  # a miss asks the graph store at most this often
 _last_refresh = 0.0
+# One refresh at a time per process: a burst of requests naming a dataset the table does not
+# know yet waits for the one refresh, then reads the table, instead of each being refused.
+_refresh_lock = threading.Lock()
 
 
 def refresh_catalog(session: Session, graphstore) -> int:
@@ -42,15 +47,19 @@ def refresh_catalog(session: Session, graphstore) -> int:
                 k: v for k, v in g.items() if isinstance(v, int | float) and not isinstance(v, bool)
             }
         )
-        jobs.upsert_dataset(
-            session,
-            name=str(g["name"])[:64],
-            version=str(g.get("version") or "unversioned")[:64],
-            graph_key=g.get("artifact_key") or g.get("graph_key") or g.get("key"),
-            stats=stats,
-            licence=str(g.get("licence") or g.get("license") or ""),
-            embedding=str(g.get("embedding") or "descriptor")[:64],
-        )
+        try:
+            with session.begin_nested():
+                jobs.upsert_dataset(
+                    session,
+                    name=str(g["name"])[:64],
+                    version=str(g.get("version") or "unversioned")[:64],
+                    graph_key=g.get("artifact_key") or g.get("graph_key") or g.get("key"),
+                    stats=stats,
+                    licence=str(g.get("licence") or g.get("license") or ""),
+                    embedding=str(g.get("embedding") or "descriptor")[:64],
+                )
+        except IntegrityError:  # another API process registered the same version just now
+            pass
         n += 1
     session.commit()
     return n
@@ -59,10 +68,12 @@ def refresh_catalog(session: Session, graphstore) -> int:
 def find_dataset(session: Session, name: str, graphstore) -> Dataset | None:
     """The catalog entry of ``name``, asking the graph store on a miss (rate-limited)."""
     row = jobs.get_dataset(session, name)
-    if row is None and time.monotonic() - _last_refresh > _REFRESH_EVERY_S:
-        refresh_catalog(session, graphstore)
-        row = jobs.get_dataset(session, name)
-    return row
+    if row is not None:
+        return row
+    with _refresh_lock:
+        if time.monotonic() - _last_refresh > _REFRESH_EVERY_S:
+            refresh_catalog(session, graphstore)
+    return jobs.get_dataset(session, name)  # what this refresh, or the one waited for, found
 
 
 def reset() -> None:

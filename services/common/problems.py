@@ -14,9 +14,11 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
+from sqlalchemy import exc as sa_exc
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from dancegraph.errors import DanceGraphError, field_errors
+from dancegraph.store import StoreUnavailableError
 
 log = logging.getLogger("dancegraph.api")
 
@@ -147,9 +149,49 @@ def install(app: FastAPI) -> None:
             headers=getattr(exc, "headers", None),
         )
 
+    for exc_types, code, detail, retry_after in _UNAVAILABLE:
+        for exc_type in exc_types:
+            app.add_exception_handler(exc_type, _unavailable(code, detail, retry_after))
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return internal_error_response(request.url.path)
+
+
+# Overload and outages: 503 with Retry-After and a fixed text; the exception's own words (the
+# driver's text names hosts and ports) go to the log only.
+_UNAVAILABLE = (
+    ((sa_exc.TimeoutError,), "database_busy", "the service is busy; try again shortly", 2),
+    (
+        (sa_exc.OperationalError, sa_exc.InterfaceError),
+        "database_unavailable",
+        "the database is not reachable; try again later",
+        5,
+    ),
+    (
+        (StoreUnavailableError,),
+        "store_unavailable",
+        "the object store is not reachable; try again later",
+        5,
+    ),
+)
+
+
+def _unavailable(code: str, detail: str, retry_after: int):
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        log.error("%s on %s %s: %r", code, request.method, request.url.path, exc)
         return problem_response(
-            500, "internal_error", "internal server error", instance=request.url.path
+            503,
+            code,
+            detail,
+            instance=request.url.path,
+            headers={"Retry-After": str(retry_after)},
         )
+
+    return handler
+
+
+def internal_error_response(instance: str | None = None) -> JSONResponse:
+    """The 500 of an unexpected error: a fixed text, never the exception's own words."""
+    return problem_response(500, "internal_error", "internal server error", instance=instance)

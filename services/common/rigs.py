@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 from pathlib import Path
 
 from sqlalchemy import select
@@ -65,7 +64,8 @@ def register_rig(
     fmt = "glb" if suffix == ".gltf" else suffix.lstrip(".")
     if suffix == ".gltf":
         suffix = ".glb" if part.path.read_bytes()[:4] == b"glTF" else ".gltf"
-    with tempfile.TemporaryDirectory(prefix="dg-rig-", dir=store.root / "tmp") as tmp:
+    tmp = store.temp_dir("rig")
+    try:
         named = Path(tmp) / f"rig{suffix}"
         shutil.copyfile(part.path, named)
         rig = load_rig(named, mapping=mapping or None)  # RigError → 422 with its code
@@ -83,6 +83,8 @@ def register_rig(
             mapping=dict(mapping),
             summary=rig.summary(),
         )
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     session.add(row)
     session.flush()
     return row
@@ -108,9 +110,12 @@ def delete_rig(session: Session, store: ObjectStore, row: RigRow) -> None:
 
 def load_stored_rig(store: ObjectStore, row: RigRow) -> tuple[Rig, Path]:
     """The stored rig, loaded with its mapping, and its file's path (FBX output poses that file)."""
-    path = store.path(row.file_key)
-    if not path.is_file():
-        raise RigError(f"rig {row.id} has no file any more", code="unknown_rig", field="rig")
+    try:
+        path = store.local_path(row.file_key)
+    except FileNotFoundError:
+        raise RigError(
+            f"rig {row.id} has no file any more", code="unknown_rig", field="rig"
+        ) from None
     return load_rig(path, mapping=dict(row.mapping) or None), path
 
 

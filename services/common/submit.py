@@ -6,11 +6,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 
+from sqlalchemy import select
 from starlette.datastructures import UploadFile
 
 from dancegraph.spec import Spec
 from dancegraph.store import ObjectStore
-from services import jobs
+from services import jobs, webhooks
 from services.common import catalog
 from services.common.problems import ApiError
 from services.common.uploads import CheckedAudio, FilePart, check_audio
@@ -19,6 +20,12 @@ from services.db import session_scope
 from services.models import Batch, Job
 
 log = logging.getLogger("dancegraph.api")
+
+
+def check_callback(settings: Settings, spec: Spec) -> None:
+    """Refuse a callback_url that names a non-public address (422 ``callback_url_forbidden``)."""
+    if spec.callback_url is not None:
+        webhooks.check_callback_url(str(spec.callback_url), settings.webhook_allow_networks)
 
 
 def check_dataset(settings: Settings, spec: Spec, graphstore) -> None:
@@ -51,6 +58,15 @@ def check_rig(settings: Settings, tenant_id: str, spec: Spec) -> None:
             )
 
 
+def _key_reused() -> ApiError:
+    return ApiError(
+        409,
+        "idempotency_key_reused",
+        "this Idempotency-Key was used for a different request",
+        field="header.Idempotency-Key",
+    )
+
+
 def submit_job(
     settings: Settings,
     store: ObjectStore,
@@ -63,6 +79,7 @@ def submit_job(
     graphstore,
 ) -> tuple[Job, bool]:
     """Validate, store and enqueue one job; returns ``(job, created)`` (False: idempotent replay)."""
+    check_callback(settings, spec)
     check_dataset(settings, spec, graphstore)
     check_rig(settings, tenant_id, spec)
     checked = check_audio(upload, settings, store)
@@ -73,12 +90,7 @@ def submit_job(
                 existing = jobs.find_job_by_idempotency_key(session, tenant_id, idempotency_key)
                 if existing is not None:
                     if existing.audio_sha256 != checked.sha256 or existing.spec != spec_dict:
-                        raise ApiError(
-                            409,
-                            "idempotency_key_reused",
-                            "this Idempotency-Key was used for a different request",
-                            field="header.Idempotency-Key",
-                        )
+                        raise _key_reused()
                     return existing, False
         stored = checked.store(store)
     finally:
@@ -98,14 +110,9 @@ def submit_job(
         )
     if not created:  # lost a race with the same key: the other request enqueued it
         if job.audio_sha256 != stored.sha256 or job.spec != spec_dict:
-            raise ApiError(
-                409,
-                "idempotency_key_reused",
-                "this Idempotency-Key was used for a different request",
-                field="header.Idempotency-Key",
-            )
+            raise _key_reused()
         return job, False
-    _enqueue_or_remove(settings, enqueue, [job.id])
+    _enqueue_or_remove(settings, store, enqueue, [job.id])
     log.info("job accepted", extra={"job_id": job.id, "tenant_id": tenant_id, "bytes": stored.size})
     return job, True
 
@@ -129,6 +136,7 @@ def submit_batch(
             f"at most {settings.max_batch_items} songs per batch",
             field="audio",
         )
+    check_callback(settings, spec)
     check_dataset(settings, spec, graphstore)
     check_rig(settings, tenant_id, spec)
     spec_dict = spec_json(spec)
@@ -140,7 +148,11 @@ def submit_batch(
                 .one_or_none()
             )
             if batch is not None:
-                return batch, jobs.batch_jobs(session, batch.id), False
+                rows = jobs.batch_jobs(session, batch.id)
+                sent = [getattr(u, "sha256", None) for u in uploads]
+                if batch.spec != spec_dict or sent != [j.audio_sha256 for j in rows]:
+                    raise _key_reused()
+                return batch, rows, False
     checked: list[CheckedAudio] = []
     try:
         for i, upload in enumerate(uploads):
@@ -168,7 +180,7 @@ def submit_batch(
                 batch_id=batch.id,
             )
             rows.append(job)
-    _enqueue_or_remove(settings, enqueue, [j.id for j in rows], batch_id=batch.id)
+    _enqueue_or_remove(settings, store, enqueue, [j.id for j in rows], batch_id=batch.id)
     with session_scope(settings.database_url) as session:
         fresh = session.get(Batch, batch.id)
         assert fresh is not None  # written above, never deleted once enqueued
@@ -176,9 +188,14 @@ def submit_batch(
 
 
 def _enqueue_or_remove(
-    settings: Settings, enqueue, job_ids: list[str], batch_id: str | None = None
+    settings: Settings,
+    store: ObjectStore,
+    enqueue,
+    job_ids: list[str],
+    batch_id: str | None = None,
 ) -> None:
-    """Enqueue each job; if the queue refuses the first, remove the rows (503), else fail the rest."""
+    """Enqueue each job; if the queue refuses the first, remove the rows and the songs only
+    they referenced (503: nothing kept), else fail the rest."""
     for i, job_id in enumerate(job_ids):
         try:
             enqueue(job_id)
@@ -186,10 +203,14 @@ def _enqueue_or_remove(
             log.error("enqueue failed for job %s: %s", job_id, exc)
             with session_scope(settings.database_url) as session:
                 if i == 0:
+                    keys = list(session.scalars(select(Job.audio_key).where(Job.id.in_(job_ids))))
                     for jid in job_ids:
                         session.query(Job).filter_by(id=jid).delete()
                     if batch_id is not None:
                         session.query(Batch).filter_by(id=batch_id).delete()
+                    session.flush()
+                    for key in jobs.unreferenced(session, keys):
+                        store.delete(key)
                 else:
                     for jid in job_ids[i:]:
                         jobs.fail_job(

@@ -96,15 +96,14 @@ class CheckedAudio:
     def store(self, store: ObjectStore) -> StoredAudio:
         """Move the checked file to its content address (``blob_key(sha256)``).
 
-        The file was hashed while it streamed in and already lies in the store's ``tmp/``, so it
-        is renamed into place (atomic, no second read); ``put_stream`` is the fallback for a file
-        whose hash is not known.
+        The file was hashed while it streamed in and already lies in the store's scratch, so it
+        is moved into place (a rename on the filesystem store, a multipart upload for a large
+        file on S3; no second hashing read); ``put_stream`` is the fallback for a file whose
+        hash is not known.
         """
-        if self.sha256 and self.path.parent == store.root / "tmp":
+        if self.sha256 and self.path.parent == store.scratch:
             key = blob_key(self.sha256)
-            target = store.path(key)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(self.path, target)  # same content at the same key: replacing is harmless
+            store.put_blob(key, self.path)
             size = self.size
         else:
             with open(self.path, "rb") as fh:
@@ -144,9 +143,8 @@ def check_audio(
 def _copy_upload(
     upload: UploadFile, settings: Settings, store: ObjectStore, field: str
 ) -> FilePart:
-    tmp_dir = store.root / "tmp"
-    tmp_dir.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=tmp_dir, prefix=".upload-")
+    store.scratch.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=store.scratch, prefix=".upload-")
     part = FilePart(field, upload.filename or "audio", Path(tmp))
     try:
         digest = hashlib.sha256()

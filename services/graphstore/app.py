@@ -4,8 +4,8 @@ A thin HTTP shell over :class:`services.graphstore.client.LocalGraphStore`, whic
 dataset's current graph artifact from the object store (``dancegraph.graph.artifact``) and
 reloads it when a new build lands (the old version keeps answering requests already holding it).
 
-Run: ``uvicorn services.graphstore.app:app`` (object store root: ``DANCEGRAPH_STORE_ROOT``, or
-``$DANCEGRAPH_HOME/store``). Errors are RFC 9457 problem details with a stable ``code``: an
+Run: ``uvicorn services.graphstore.app:app`` (object store: ``DANCEGRAPH_STORE_URL`` for S3, else
+the folder ``DANCEGRAPH_STORE_ROOT`` or ``$DANCEGRAPH_HOME/store``). Errors are RFC 9457 problem details with a stable ``code``: an
 unknown graph is ``404 unknown_dataset``, an unknown node ``404 unknown_node``, a bad spec
 ``422 spec_invalid`` / ``spec_unknown_field``, a bad analysis ``422 analysis_invalid``.
 
@@ -32,11 +32,10 @@ from fastapi.responses import JSONResponse
 
 from dancegraph import __version__
 from dancegraph.errors import DanceGraphError
-from dancegraph.paths import store_dir
 from dancegraph.spec import parse_spec
 from dancegraph.store import ObjectStore
 from services.common.problems import install as install_problem_handlers
-from services.config import get_settings
+from services.config import get_settings, object_store
 from services.graphstore.client import LocalGraphStore, parse_analysis
 
 log = logging.getLogger("dancegraph.graphstore")
@@ -73,7 +72,7 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
 
     def graphs() -> LocalGraphStore:
         if "local" not in state:
-            state["local"] = LocalGraphStore(store or ObjectStore(store_dir()))
+            state["local"] = LocalGraphStore(store or object_store(get_settings()))
         return state["local"]
 
     app.state.graphs = graphs

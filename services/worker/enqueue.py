@@ -49,6 +49,12 @@ def try_send(name: str, job_id: str) -> bool:
     return True
 
 
+def warm_up() -> None:
+    """Load the broker transport now (an import, no connection): a process that will enqueue
+    calls it at start so its first burst of requests does not wait on that import."""
+    app.connection_for_write().release()
+
+
 def enqueue_job(job_id: str) -> None:
     """Queue a job's pipeline (``dancegraph.run_job`` on the ``analysis`` queue).
 

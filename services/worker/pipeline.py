@@ -8,10 +8,12 @@ Each stage is idempotent and leaves nothing half-written:
   (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
   graph store (``services.graphstore.client``: in-process in the embedded
   default, over HTTP in production); its answer is kept with the rendered files.
-- render: writes into a private temporary folder ``<store>/tmp/job-<id>-<random>/`` and renames
-  it to ``jobs/<job_id>/`` in one step; ``jobs/<job_id>/timeline.json`` existing means the render
-  is complete, so a re-run skips it.
-- FBX: each ``alternatives/<k>.fbx`` is written to a ``.tmp-`` sibling and renamed into place.
+- render: writes into a private scratch folder ``job-<id>-<random>/`` and publishes it at
+  ``jobs/<job_id>/`` (``ObjectStore.publish``: the files under a fresh version prefix, then
+  ``jobs/<job_id>/manifest.json`` created last and only once); a published manifest means the
+  render is complete, so a re-run skips it, and readers (the API) see only what it names.
+- FBX: each ``alternatives/<k>.fbx`` is converted from a local copy of its BVH and added to the
+  published result (``ObjectStore.publish_more``), file by file, so a restart skips done ones.
 - finalize: the job row becomes ``succeeded`` with the alternatives and their costs (a
   conditional update: a cancelled or already-finished job is never overwritten).
 
@@ -22,14 +24,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import uuid
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from dancegraph.errors import DanceGraphError
+from dancegraph.errors import AudioError, DanceGraphError
 from dancegraph.graph.search import SearchResult
 from dancegraph.music.analysis import MusicAnalysis
 from dancegraph.spec import Spec, parse_spec
@@ -37,6 +37,7 @@ from dancegraph.store import ObjectStore
 from services import jobs
 from services.common.rigs import job_rig_output, write_rig_fbx
 from services.config import Settings, get_settings
+from services.config import object_store as settings_store
 from services.db import session_scope
 from services.graphstore.client import GraphStoreClient
 from services.models import SUCCEEDED
@@ -57,13 +58,8 @@ TIMELINE = "timeline.json"
 SEARCH_FILE = "search.json"
 
 
-@lru_cache(maxsize=4)
-def _store(root: str) -> ObjectStore:
-    return ObjectStore(root)
-
-
 def object_store(settings: Settings | None = None) -> ObjectStore:
-    return _store((settings or get_settings()).store_root)
+    return settings_store(settings or get_settings())
 
 
 def analysis_key(audio_sha256: str) -> str:
@@ -74,17 +70,27 @@ def analysis_key(audio_sha256: str) -> str:
 # --- stages ---------------------------------------------------------------------------------
 
 
-def analyze(store: ObjectStore, audio_key: str, audio_sha256: str) -> MusicAnalysis:
+def analyze(
+    store: ObjectStore, audio_key: str, audio_sha256: str, filename: str | None = None
+) -> MusicAnalysis:
     """The song's analysis, computed once per sha256 and cached as ``MusicAnalysis.to_dict()``;
     always returned as read back from that JSON, so a first run and a re-run see the same
-    numbers."""
+    numbers. An audio error names ``filename`` (the name the client uploaded), not the blob."""
     key = analysis_key(audio_sha256)
     if store.exists(key):
         data = json.loads(store.get_bytes(key))
     else:
         from dancegraph.music.analysis import analyze as analyze_music
 
-        data = analyze_music(str(store.path(audio_key))).to_dict()
+        path = store.local_path(audio_key)
+        try:
+            data = analyze_music(str(path)).to_dict()
+        except AudioError as exc:
+            if filename:
+                exc.message = exc.message.replace(path.name, filename)
+                exc.args = (exc.message,)
+                exc.field = "audio"
+            raise
         store.put_bytes(key, json.dumps(data).encode("utf-8"))
     return MusicAnalysis.from_dict(data)
 
@@ -103,7 +109,7 @@ def with_learned_terms(
         graph = load_graph(store, dataset)
     except DanceGraphError:
         return analysis  # no such graph: the search stage names the problem
-    return add_music_terms(analysis, graph, str(store.path(audio_key)))
+    return add_music_terms(analysis, graph, str(store.local_path(audio_key)))
 
 
 def search(settings: Settings, spec: Spec, analysis: MusicAnalysis) -> SearchResult:
@@ -113,15 +119,15 @@ def search(settings: Settings, spec: Spec, analysis: MusicAnalysis) -> SearchRes
 
 def graphstore_client(settings: Settings) -> GraphStoreClient:
     """LocalGraphStore (in-process) when ``graphstore_url`` is 'local', else HttpGraphStore."""
-    return _graphstore_client(settings.graphstore_url, settings.store_root)
+    return _graphstore_client(settings.graphstore_url, object_store(settings))
 
 
 @lru_cache(maxsize=4)
-def _graphstore_client(url: str, store_root: str) -> GraphStoreClient:
+def _graphstore_client(url: str, store: ObjectStore) -> GraphStoreClient:
     from services.graphstore.client import HttpGraphStore, LocalGraphStore
 
     if url == "local":
-        return LocalGraphStore(_store(store_root))
+        return LocalGraphStore(store)
     return HttpGraphStore(url)
 
 
@@ -130,15 +136,15 @@ def load_graph(store: ObjectStore, name: str, version: str | None = None):
     per process and version; render uses the version the search answered from."""
     from dancegraph.graph.artifact import current_version
 
-    return _load_graph(str(store.root), name, version or current_version(store, name))
+    return _load_graph(store, name, version or current_version(store, name))
 
 
 @lru_cache(maxsize=8)
-def _load_graph(store_root: str, name: str, version: str):
-    from dancegraph.graph.artifact import graph_key
+def _load_graph(store: ObjectStore, name: str, version: str):
+    from dancegraph.graph.artifact import graph_folder
     from dancegraph.graph.artifact import load_graph as load_artifact
 
-    return load_artifact(_store(store_root).path(graph_key(name, version)))
+    return load_artifact(graph_folder(store, name, version))
 
 
 def render(
@@ -150,15 +156,14 @@ def render(
     audio: dict[str, str] | None = None,
     on_rig=None,
 ) -> list[str]:
-    """Render BVH + timeline into ``jobs/<job_id>/`` atomically; returns the written keys.
+    """Render BVH + timeline and publish them at ``jobs/<job_id>/``; returns the file names.
 
     ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
     ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
     queue's work (a warm Blender per worker). ``on_rig``: the hook that also writes each
     alternative on the job's rig (``services.common.rigs.job_rig_output``).
     """
-    final = store.path(jobs.result_key(job_id))
-    if (final / TIMELINE).is_file():
+    if store.published(jobs.result_key(job_id)) is not None:
         return list_result_files(store, job_id)
     from dancegraph.render import render as render_motion
 
@@ -166,82 +171,47 @@ def render(
         update={"output": spec.output.model_copy(update={"formats": ["bvh"]})}
     )
     graph = load_graph(store, spec.dataset, found.graph_version or None)
-    tmp = store.root / "tmp" / f"job-{job_id}-{uuid.uuid4().hex}"
-    tmp.mkdir(parents=True)
+    tmp = store.temp_dir(f"job-{job_id}")
     try:
         extra = {"audio": audio} if audio else None
         render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra, on_rig=on_rig)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
-        publish_folder(tmp, final, marker=TIMELINE)
+        # False: another worker published first; its complete result stands
+        store.publish(jobs.result_key(job_id), tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return list_result_files(store, job_id)
 
 
-def publish_folder(tmp: Path, final: Path, *, marker: str) -> None:
-    """Move a finished folder into place so readers see all of it or none of it.
-
-    One ``rename`` when ``final`` does not exist yet; otherwise entry by entry with ``marker``
-    (the file whose presence means "complete") moved last. When ``final`` already holds the
-    marker, another worker finished first and ``tmp`` is left for the caller to discard.
-    """
-    final.parent.mkdir(parents=True, exist_ok=True)
-    if (final / marker).exists():
-        return
-    try:
-        os.rename(tmp, final)
-        return
-    except OSError:
-        if not final.is_dir():
-            raise
-    entries = sorted(tmp.iterdir(), key=lambda p: p.name == marker)
-    for entry in entries:
-        target = final / entry.name
-        if entry.is_dir() and target.is_dir():
-            for child in entry.iterdir():
-                os.replace(child, target / child.name)
-        else:
-            if target.is_dir():
-                shutil.rmtree(target)
-            os.replace(entry, target)
-
-
 def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
-    """Result files of a job, relative to ``jobs/<job_id>/`` (temporary files excluded)."""
-    prefix = jobs.result_key(job_id)
-    return [key[len(prefix) + 1 :] for key in store.list(prefix)]
-
-
-def bvh_files(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[Path]:
-    """The library-skeleton ``<k>.bvh`` files (``rig``: the ``<k>.rig.bvh`` ones) of a job."""
-    folder = store.path(jobs.result_key(job_id, "alternatives"))
-    found = folder.glob("*.rig.bvh" if rig else "*.bvh")
-    return sorted(
-        (p for p in found if rig or not p.name.endswith(".rig.bvh")), key=lambda p: p.name
-    )
+    """Names of a job's published result files, relative to ``jobs/<job_id>/``."""
+    return sorted(jobs.result_files(store, job_id))
 
 
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
-    """Write ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there), and
+    """Add ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there), and
     with ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``."""
     from services.worker import fbx_export
 
-    todo = [(b, None) for b in bvh_files(store, job_id)]
+    prefix = jobs.result_key(job_id)
+    todo = [(name, None) for name in jobs.bvh_files(store, job_id)]
     if on_rig is not None:
-        todo += [(b, on_rig) for b in bvh_files(store, job_id, rig=True)]
-    for i, (bvh, writer) in enumerate(todo):
-        fbx = bvh.with_suffix(".fbx")
-        if fbx.exists():
+        todo += [(name, on_rig) for name in jobs.bvh_files(store, job_id, rig=True)]
+    for i, (name, writer) in enumerate(todo):
+        files = jobs.result_files(store, job_id)
+        fbx_name = name[: -len(".bvh")] + ".fbx"
+        if fbx_name in files:
             continue
-        tmp = bvh.with_name(f".tmp-{uuid.uuid4().hex}-{fbx.name}")
+        tmp = store.temp_dir(f"fbx-{job_id}")
         try:
+            out = tmp / fbx_name.rsplit("/", 1)[1]
             if writer is None:
-                fbx_export.export(bvh, tmp, fps=fps)
+                fbx_export.export(store.local_path(files[name]), out, fps=fps)
             else:
-                writer(bvh, tmp)
-            os.replace(tmp, fbx)
+                writer(store.local_path(files[name]), out)
+            store.publish_more(prefix, {fbx_name: out})
         finally:
-            tmp.unlink(missing_ok=True)
+            shutil.rmtree(tmp, ignore_errors=True)
         if on_file is not None:
             on_file(i)
     return list_result_files(store, job_id)
@@ -253,9 +223,10 @@ def wants_fbx(spec: Spec) -> bool:
 
 def finalize(store: ObjectStore, job_id: str) -> bool:
     """Mark the job succeeded with its alternatives, costs and files; False if already final."""
-    found = json.loads(store.get_bytes(jobs.result_key(job_id, SEARCH_FILE)))
+    files = jobs.result_files(store, job_id)
+    found = json.loads(store.get_bytes(files[SEARCH_FILE]))
     result = dict(found)
-    result["files"] = [f for f in list_result_files(store, job_id) if f != SEARCH_FILE]
+    result["files"] = sorted(f for f in files if f != SEARCH_FILE)
     with session_scope() as session:
         ok = jobs.set_status(
             session, job_id, SUCCEEDED, stage="done", progress=100.0, result=result
@@ -291,7 +262,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
-        analysis = analyze(store, job.audio_key, job.audio_sha256)
+        analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename)
         beat.check()
         with session_scope() as session:
             _set_summary(session, job_id, analysis)
@@ -304,9 +275,10 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         on_rig = job_rig_output(store, settings.database_url, job.tenant_id, spec.output.rig)
         files = render(store, job_id, spec, analysis, found, source, on_rig)
         beat.check()
+        done = jobs.result_files(store, job_id)
         if wants_fbx(spec) and not all(
-            p.with_suffix(".fbx").exists()
-            for p in bvh_files(store, job_id) + bvh_files(store, job_id, rig=True)
+            n[: -len(".bvh")] + ".fbx" in done
+            for n in jobs.bvh_files(store, job_id) + jobs.bvh_files(store, job_id, rig=True)
         ):
             state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
             return RunOutcome("fbx_queued", files)
@@ -325,7 +297,9 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "fbx", STAGES["fbx"])
-        n = max(1, len(bvh_files(store, job_id)) + len(bvh_files(store, job_id, rig=True)))
+        n = max(
+            1, len(jobs.bvh_files(store, job_id)) + len(jobs.bvh_files(store, job_id, rig=True))
+        )
         span = STAGES["finalize"] - STAGES["fbx"]
 
         def on_file(i: int) -> None:

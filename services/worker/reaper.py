@@ -2,8 +2,9 @@
 
 One sweep (``reap_once``):
 1. ``running`` jobs whose heartbeat is older than ``Settings.job_timeout_s`` (their worker died:
-   SIGKILL, OOM, a lost machine) go back to ``queued`` and are re-enqueued — or fail with
-   ``worker_lost`` once they have used ``Settings.job_max_attempts`` tries.
+   SIGKILL, OOM, a lost machine) count one crash (``Job.crashes``) and go back to ``queued``
+   and are re-enqueued — or fail with ``worker_lost`` at their ``Settings.job_max_attempts``-th
+   crash. Transient retries (a service down for a while) are not crashes and do not count.
 2. ``queued`` jobs untouched for ``job_timeout_s`` are enqueued again when the broker holds fewer
    messages than there are such jobs: their messages are gone (Redis restarted without
    persistence). A duplicate message is harmless: ``state.claim`` lets only one worker run a job.
@@ -11,7 +12,11 @@ One sweep (``reap_once``):
    FBX task is re-sent only when the ``fbx`` queue holds fewer messages than such jobs.
 3. final jobs whose webhook is still ``pending`` long after they finished get their webhook
    queued again (its task was lost).
-4. temporary render folders older than ``2 × job_timeout_s`` (left by killed workers) are removed.
+4. what killed processes leave behind, untouched for ``2 × job_timeout_s``, is removed: every
+   entry of the store's scratch folder (partial uploads, render and build folders, temporary
+   files), result versions no manifest names, unfinished multipart uploads (S3), and uploaded
+   songs (``blobs/``) that no job row references (an API killed between storing and writing
+   the row).
 
 Run it as ``dancegraph reaper`` (a loop), as the Celery beat task ``dancegraph.reap``, or inside
 ``dancegraph serve --embedded``.
@@ -20,7 +25,6 @@ Run it as ``dancegraph reaper`` (a loop), as the Celery beat task ``dancegraph.r
 from __future__ import annotations
 
 import logging
-import shutil
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -29,6 +33,7 @@ from typing import Any, cast
 
 from sqlalchemy import CursorResult, select, update
 
+from dancegraph.store import ObjectStore
 from services import jobs
 from services.config import QUEUE_ANALYSIS, QUEUE_FBX, Settings, get_settings
 from services.db import session_scope
@@ -50,6 +55,7 @@ class ReapReport:
     webhooks: list[str] = field(default_factory=list)
     fbx_resent: list[str] = field(default_factory=list)
     tmp_removed: int = 0
+    orphans_removed: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -62,6 +68,7 @@ class ReapReport:
             or self.webhooks
             or self.fbx_resent
             or self.tmp_removed
+            or self.orphans_removed
         )
 
 
@@ -91,12 +98,19 @@ def reap_once(
                 .execution_options(synchronize_session=False)
             )
         for job in stuck:
-            if job.attempts >= settings.job_max_attempts:
+            crashes = (job.crashes or 0) + 1
+            session.execute(
+                update(Job)
+                .where(Job.id == job.id)
+                .values(crashes=Job.crashes + 1)
+                .execution_options(synchronize_session=False)
+            )
+            if crashes >= settings.job_max_attempts:
                 jobs.fail_job(
                     session,
                     job.id,
                     "worker_lost",
-                    f"the job's worker stopped responding {job.attempts} times",
+                    f"the job's worker stopped responding {crashes} times",
                 )
                 report.failed.append(job.id)
             elif jobs.requeue_job(session, job.id):
@@ -151,26 +165,37 @@ def reap_once(
     for job_id in lost_hooks:
         if enqueue.enqueue_webhook(job_id):
             report.webhooks.append(job_id)
-    report.tmp_removed = _remove_stale_tmp(settings, 2 * settings.job_timeout_s)
+    store = pipeline.object_store(settings)
+    grace = 2 * settings.job_timeout_s
+    report.tmp_removed = store.sweep_scratch(grace)
+    report.orphans_removed = (
+        store.sweep_orphans("jobs", grace) + store.sweep_uploads(grace) + sweep_blobs(store, grace)
+    )
     if report:
         log.info("reaped", extra=report.to_dict())
     return report
 
 
-def _remove_stale_tmp(settings: Settings, older_than_s: float) -> int:
-    tmp = pipeline.object_store(settings).root / "tmp"
-    if not tmp.is_dir():
-        return 0
+def sweep_blobs(store: ObjectStore, older_than_s: float) -> int:
+    """Remove uploaded songs that no job references, stored more than ``older_than_s`` ago."""
     limit = time.time() - older_than_s
-    removed = 0
-    for entry in tmp.glob("job-*"):
-        try:
-            if entry.stat().st_mtime < limit:
-                shutil.rmtree(entry, ignore_errors=True)
-                removed += 1
-        except FileNotFoundError:
-            continue
-    return removed
+    old = {
+        e.key.rsplit("/", 1)[-1]: e.key for e in store.entries("blobs/sha256") if e.mtime < limit
+    }
+    if not old:
+        return 0
+    with session_scope() as session:
+        used: set[str] = set()
+        shas = list(old)
+        for i in range(0, len(shas), 500):
+            used.update(
+                session.scalars(
+                    select(Job.audio_sha256).where(Job.audio_sha256.in_(shas[i : i + 500]))
+                )
+            )
+    for sha in set(old) - used:
+        store.delete(old[sha])
+    return len(set(old) - used)
 
 
 def run_forever(

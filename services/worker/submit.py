@@ -21,10 +21,10 @@ from sqlalchemy import select
 from starlette.datastructures import UploadFile
 
 from dancegraph.errors import DanceGraphError
-from dancegraph.spec import parse_spec
+from dancegraph.spec import check_json_value, parse_spec
 from dancegraph.store import InvalidKeyError, check_key
 from services import jobs
-from services.common.submit import check_dataset
+from services.common.submit import check_callback, check_dataset
 from services.common.uploads import check_audio
 from services.config import Settings, get_settings
 from services.db import session_scope
@@ -57,16 +57,19 @@ def _audio_path(settings: Settings, audio: str) -> Path:
         )
     if Path(audio).is_absolute():
         path = Path(audio)
-    else:
-        try:
-            path = pipeline.object_store(settings).path(check_key(audio))
-        except InvalidKeyError as exc:
-            raise SubmitError(
-                f"invalid object key {audio!r}", code="audio_missing", field="audio"
-            ) from exc
-    if not path.is_file():
-        raise SubmitError(f"no audio file at {audio!r}", code="audio_missing", field="audio")
-    return path
+        if not path.is_file():
+            raise SubmitError(f"no audio file at {audio!r}", code="audio_missing", field="audio")
+        return path
+    try:
+        return pipeline.object_store(settings).local_path(check_key(audio))
+    except InvalidKeyError as exc:
+        raise SubmitError(
+            f"invalid object key {audio!r}", code="audio_missing", field="audio"
+        ) from exc
+    except FileNotFoundError:
+        raise SubmitError(
+            f"no audio file at {audio!r}", code="audio_missing", field="audio"
+        ) from None
 
 
 def submit(
@@ -98,6 +101,7 @@ def submit(
             return existing.id  # a redelivered submit: the job exists already
     try:
         parsed = parse_spec(spec)
+        check_callback(settings, parsed)
         check_dataset(settings, parsed, pipeline.graphstore_client(settings))
         path = _audio_path(settings, audio)
         with open(path, "rb") as fh:
@@ -136,6 +140,18 @@ def submit(
     return job_id
 
 
+def _storable(spec: object) -> dict:
+    """The refused spec as the failed row keeps it: itself when PostgreSQL's JSON type can hold
+    it, else an escaped excerpt of its text (no NUL, surrogate or non-finite number)."""
+    if isinstance(spec, dict):
+        try:
+            check_json_value(spec)
+            return spec
+        except DanceGraphError:
+            pass
+    return {"raw": ascii(spec)[:1000]}
+
+
 def _record_refusal(
     job_id: str, tenant_id: str, spec: object, exc: DanceGraphError, key: str | None
 ) -> None:
@@ -144,7 +160,7 @@ def _record_refusal(
         job, created = jobs.create_job(
             session,
             tenant_id=tenant_id,
-            spec=spec if isinstance(spec, dict) else {"raw": str(spec)[:1000]},
+            spec=_storable(spec),
             audio_key="rejected",
             audio_sha256="",
             idempotency_key=key,

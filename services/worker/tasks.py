@@ -3,16 +3,20 @@
 Failure policy, the same for every task:
 - ``DanceGraphError`` (the input's fault: bad audio, no beat, unknown dataset, impossible
   constraint) → the job fails with the error's stable ``code``; no retry.
-- transient errors (database, broker or graph-store connection; a DanceGraphError with status
-  503 such as ``graphstore_unavailable``) → the job goes back to
+- transient errors (database, broker, object-store or graph-store connection; a full disk; a
+  DanceGraphError with status 503 such as ``graphstore_unavailable``) → the job goes back to
   ``queued`` and the task retries with exponential backoff, at most ``MAX_RETRIES`` times; then
-  the job fails with ``service_unavailable``.
+  the job fails with ``service_unavailable``. These retries are not crashes: the reaper's
+  ``worker_lost`` budget counts only jobs it found abandoned (``Job.crashes``).
 - the soft time limit → the job fails with ``job_timeout``; any other exception (a bug) → the
   job fails with ``internal_error`` and the traceback is logged.
+A job's error message never carries an exception's own text (it may name hosts, ports or
+paths): that goes to the log.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import uuid
 
@@ -57,11 +61,17 @@ def retry_delay(retries: int) -> float:
     return min(RETRY_MAX_S, RETRY_BASE_S * (2**retries))
 
 
+# A full disk or quota: space comes back (the reaper sweeps, an operator adds some).
+_TRANSIENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+
+
 def is_transient(exc: BaseException) -> bool:
     """A failure of the machinery, not of the input: worth retrying later."""
     if isinstance(exc, DanceGraphError):
         # e.g. graphstore_unavailable: the graph store's client answers 503 for a lost connection
         return getattr(exc, "status", 400) == 503
+    if isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS:
+        return True
     return isinstance(exc, TRANSIENT_ERRORS)
 
 
@@ -85,7 +95,9 @@ def _run(task, job_id: str, step) -> None:
                 pipeline.fail(job_id, exc)
             else:
                 log.exception("internal error")
-                _fail_quietly(job_id, "internal_error", f"{type(exc).__name__}: {exc}")
+                _fail_quietly(
+                    job_id, "internal_error", "an internal error stopped the job (see the logs)"
+                )
         else:
             if outcome.status == "fbx_queued":
                 enqueue.enqueue_fbx(job_id)
@@ -99,7 +111,11 @@ def _retry_or_give_up(task, job_id: str, exc: Exception) -> None:
     """Requeue the job and retry the task with backoff; fail it once the retries are spent."""
     if task.request.retries >= MAX_RETRIES:
         log.error("transient errors exhausted the retries", exc_info=True)
-        _fail_quietly(job_id, "service_unavailable", f"a service stayed unreachable: {exc}")
+        _fail_quietly(
+            job_id,
+            "service_unavailable",
+            f"a service stayed unavailable through {MAX_RETRIES} retries ({type(exc).__name__})",
+        )
         return
     delay = retry_delay(task.request.retries)
     log.warning("transient error; retrying", extra={"delay_s": delay, "error": str(exc)})

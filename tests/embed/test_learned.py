@@ -190,10 +190,10 @@ def test_train_cli_reports_errors_with_their_code(paired, tmp_path, capsys):
 def demo_store(tmp_path_factory):
     from dancegraph.motion.dataset import import_dataset
     from dancegraph.motion.demo import write_demo_library
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
 
     root = tmp_path_factory.mktemp("demo")
-    store = ObjectStore(root / "store")
+    store = FileStore(root / "store")
     lib = write_demo_library(root / "lib")
     import_dataset(lib, "demo", store, json.loads((lib / "manifest.json").read_text()))
     return store
@@ -283,10 +283,10 @@ def learned_graph(demo_store, style_run, rhythm_run):
 
 def test_a_corrupted_stored_model_fails_when_the_graph_loads(learned_graph, demo_store, tmp_path):
     from dancegraph.errors import ModelFileError
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
     from services.graphstore.client import LocalGraphStore
 
-    copy = ObjectStore(shutil.copytree(demo_store.root, tmp_path / "store"))
+    copy = FileStore(shutil.copytree(demo_store.root, tmp_path / "store"))
     assert LocalGraphStore(copy).graph("demo").version == learned_graph.version
     record = learned_graph.manifest["embedding"]["style_model"]
     model_file = copy.path(record["key"])

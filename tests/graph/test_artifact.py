@@ -10,7 +10,7 @@ import pytest
 
 from dancegraph.errors import ModelFileError, NotFoundError
 from dancegraph.graph import artifact
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore
 
 
 def _write(store, demo_build, version):
@@ -19,7 +19,7 @@ def _write(store, demo_build, version):
 
 
 def test_roundtrip_is_memory_mapped_and_checksummed(tmp_path, demo_build):
-    store = ObjectStore(tmp_path / "store")
+    store = FileStore(tmp_path / "store")
     key = _write(store, demo_build, "v1")
     assert key == "graphs/demo/v1"
     g = artifact.load_graph(store.path(key), verify=True)
@@ -41,7 +41,7 @@ def test_roundtrip_is_memory_mapped_and_checksummed(tmp_path, demo_build):
 
 
 def test_new_version_loads_while_old_keeps_answering(tmp_path, demo_build):
-    store = ObjectStore(tmp_path / "store")
+    store = FileStore(tmp_path / "store")
     _write(store, demo_build, "v1")
     old = artifact.load_current(store, "demo")
     old_edges = np.asarray(old.indices).copy()
@@ -60,7 +60,7 @@ def test_new_version_loads_while_old_keeps_answering(tmp_path, demo_build):
 
 
 def test_same_build_twice_in_one_second_is_one_version(tmp_path, demo_build, monkeypatch):
-    store = ObjectStore(tmp_path / "store")
+    store = FileStore(tmp_path / "store")
     arrays, ids, manifest = demo_build
     frozen = time.gmtime()
     monkeypatch.setattr(artifact.time, "gmtime", lambda *_: frozen)  # both builds in one second
@@ -79,7 +79,7 @@ def test_same_build_twice_in_one_second_is_one_version(tmp_path, demo_build, mon
 
 
 def test_corrupt_and_missing_artifacts_are_named(tmp_path, demo_build):
-    store = ObjectStore(tmp_path / "store")
+    store = FileStore(tmp_path / "store")
     key = _write(store, demo_build, "v1")
     with pytest.raises(NotFoundError) as exc:
         artifact.load_current(store, "nosuch")

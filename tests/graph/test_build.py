@@ -156,10 +156,10 @@ def demo_store(tmp_path_factory):
     """The generated demo library imported as dataset 'demo' (the project's own fixture)."""
     from dancegraph.motion.dataset import import_dataset
     from dancegraph.motion.demo import write_demo_library
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
 
     root = tmp_path_factory.mktemp("demo")
-    store = ObjectStore(root / "store")
+    store = FileStore(root / "store")
     import_dataset(write_demo_library(root / "lib"), "demo", store)
     return store
 

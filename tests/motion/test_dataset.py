@@ -23,7 +23,7 @@ from dancegraph.motion.dataset import (
 from dancegraph.motion.demo import write_demo_library
 from dancegraph.paths import REPO_ROOT
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 
 MANIFESTS = REPO_ROOT / "datasets" / "manifests"
 LEADERS = ("60_01", "60_03", "60_13", "60_15")
@@ -40,7 +40,7 @@ def demo_manifest(demo_dir) -> dict:
 
 
 def _store(tmp_path: Path) -> ObjectStore:
-    return ObjectStore(tmp_path / "store")
+    return FileStore(tmp_path / "store")
 
 
 def _link(src: Path, dst_dir: Path, name: str | None = None) -> Path:

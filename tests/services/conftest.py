@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 import secrets
 import uuid
@@ -32,6 +33,9 @@ PG_ADMIN_URL = os.environ.get(
     "DANCEGRAPH_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 )
 TEST_DATASET = "cmu-salsa"
+# Private-looking secrets of the test deployments (a non-embedded deployment refuses defaults).
+TEST_WEBHOOK_SECRET = "test-webhook-secret-" + "w" * 32
+TEST_PREVIEW_SECRET = "test-preview-secret-" + "p" * 32
 
 
 def _pg_admin_dsn() -> str:
@@ -87,9 +91,6 @@ def pg_url(pg_admin: str) -> Iterator[str]:
         drop_database(pg_admin, name)
 
 
-_ENV_FIELDS = ("database_url", "broker_url", "broker_folder", "store_root", "graphstore_url")
-
-
 @pytest.fixture()
 def make_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[..., object]:
     from services.config import Settings, get_settings
@@ -101,12 +102,16 @@ def make_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[.
             "broker_folder": str(tmp_path / "broker"),
             "store_root": str(tmp_path / "store"),
             "graphstore_url": "local",
+            "webhook_secret": TEST_WEBHOOK_SECRET,
+            "preview_secret": TEST_PREVIEW_SECRET,
+            "webhook_allow_networks": ["127.0.0.1/32"],  # the local test receivers
         }
         values.update(overrides)
         monkeypatch.setenv("DANCEGRAPH_HOME", str(tmp_path / "home"))
         monkeypatch.setenv("DANCEGRAPH_STORE_ROOT", str(values["store_root"]))
         for key, value in values.items():
-            monkeypatch.setenv(f"DANCEGRAPH_{key.upper()}", str(value))
+            text = json.dumps(value) if isinstance(value, list) else str(value)
+            monkeypatch.setenv(f"DANCEGRAPH_{key.upper()}", text)
         get_settings.cache_clear()
         return Settings(**values)
 

@@ -134,10 +134,13 @@ def test_list_paging_and_filters(api):
 
 
 def _finish(api, job_id: str, files: dict[str, bytes], alternatives=None) -> None:
-    """Write result files where the worker writes them and mark the job succeeded."""
+    """Publish result files as the worker does and mark the job succeeded."""
     store = api.app.state.ctx.store
+    folder = store.temp_dir("result")
     for name, data in files.items():
-        store.put_bytes(jobs.result_key(job_id, name), data)
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(data)
+    assert store.publish(jobs.result_key(job_id), folder)
     alternatives = alternatives or [
         {"nodes": ["60_03:1", "60_03:2"], "cost": 1.5, "violations": []}
     ]

@@ -10,7 +10,12 @@ from pathlib import Path
 from sqlalchemy import create_engine, inspect
 
 from dancegraph.paths import REPO_ROOT
-from tests.services.conftest import create_database, drop_database
+from tests.services.conftest import (
+    TEST_PREVIEW_SECRET,
+    TEST_WEBHOOK_SECRET,
+    create_database,
+    drop_database,
+)
 
 
 def test_datasets(api):
@@ -66,7 +71,12 @@ def test_alembic_upgrade_head_on_empty_postgres(pg_admin):
     name = f"dancegraph_test_mig_{secrets.token_hex(4)}"
     url = create_database(pg_admin, name)
     try:
-        env = {"DANCEGRAPH_DATABASE_URL": url, "PATH": "/usr/bin:/bin"}
+        env = {
+            "DANCEGRAPH_DATABASE_URL": url,
+            "DANCEGRAPH_WEBHOOK_SECRET": TEST_WEBHOOK_SECRET,
+            "DANCEGRAPH_PREVIEW_SECRET": TEST_PREVIEW_SECRET,
+            "PATH": "/usr/bin:/bin",
+        }
         alembic = str(Path(sys.executable).parent / "alembic")
         for cmd in (["upgrade", "head"], ["check"], ["downgrade", "base"], ["upgrade", "head"]):
             out = subprocess.run(

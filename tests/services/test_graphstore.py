@@ -19,7 +19,7 @@ from dancegraph.motion.dataset import load_dataset
 from dancegraph.music.analysis import MusicAnalysis, analyze
 from dancegraph.music.generator import generate_song
 from dancegraph.spec import parse_spec
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 from services.graphstore.app import create_app
 from services.graphstore.client import HttpGraphStore, LocalGraphStore
 from tests.demo import demo_store
@@ -190,7 +190,7 @@ def test_start_up_loads_every_graph_and_logs_the_broken_ones(
 ):
     import shutil
 
-    copy = ObjectStore(shutil.copytree(store.root, tmp_path / "store"))
+    copy = FileStore(shutil.copytree(store.root, tmp_path / "store"))
     broken = copy.path("graphs/broken")
     broken.mkdir(parents=True)
     (broken / "current").write_text("nosuch-version")

@@ -35,8 +35,9 @@ def finish_with(api, job_id: str, out: Path) -> None:
     """Put a synthesize output where the worker writes a job's results; mark the job succeeded."""
     store = api.app.state.ctx.store
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    for name in files:
-        store.put_bytes(jobs.result_key(job_id, name), (out / name).read_bytes())
+    folder = store.temp_dir("result")
+    shutil.copytree(out, folder, dirs_exist_ok=True)
+    assert store.publish(jobs.result_key(job_id), folder)
     timeline = json.loads((out / "timeline.json").read_text())
     alternatives = [
         {"nodes": [b["node"] for b in a["bars"]], "cost": a["cost"], "violations": []}
@@ -203,7 +204,7 @@ def test_pose_and_timeline_routes_gzip_and_cache_the_poses(api, result):
     job_id = api.submit((result / "song.wav").read_bytes(), {"alternatives": 2}).json()["id"]
     finish_with(api, job_id, result / "out")
     store = api.app.state.ctx.store
-    bvh = store.path(jobs.result_key(job_id, "alternatives/0.bvh"))
+    bvh = store.local_path(jobs.result_files(store, job_id)["alternatives/0.bvh"])
     key = pose_cache_key(pose_cache_prefix(job_id), bvh)
     url = f"/v1/jobs/{job_id}/preview/poses/0.json"
     expected = pose_track_file(bvh)

@@ -26,12 +26,16 @@ import pytest
 from dancegraph.paths import REPO_ROOT
 
 REDIS_HOST, REDIS_PORT = "127.0.0.1", 6379
+# a db number of its own (other tests and services use 0); overridable where several test runs
+# share one Redis
 REDIS_DB = int(os.environ.get("DANCEGRAPH_TEST_REDIS_DB", "11"))
 PG_ADMIN_URL = "postgresql://postgres@127.0.0.1:5432/postgres"
 DATASET = "demo"
+WORKER_START_S = 180.0
 JOB_TIMEOUT_S = 10.0  # the stuck timeout in these tests: the reaper acts within seconds
 FINAL = {"succeeded", "failed", "cancelled"}
 VENV_BIN = Path(sys.executable).parent
+WEBHOOK_SECRET = "worker-test-webhook-secret-" + "w" * 32
 
 
 def port_open(host: str, port: int) -> bool:
@@ -152,9 +156,9 @@ def build_demo_store(root: Path) -> Path:
     from dancegraph.graph.build import build_graph
     from dancegraph.motion.dataset import import_dataset, load_dataset
     from dancegraph.motion.demo import write_demo_library
-    from dancegraph.store import ObjectStore
+    from dancegraph.store import FileStore
 
-    store = ObjectStore(root)
+    store = FileStore(root)
     src = write_demo_library(root.parent / "demo-src", seed=0)
     import_dataset(src, DATASET, store)  # reads the library's own manifest.json
     build_graph(load_dataset(store, DATASET), store)
@@ -199,12 +203,23 @@ class Cluster:
     def store_root(self) -> Path:
         return Path(self.env["DANCEGRAPH_STORE_ROOT"])
 
+    @property
+    def store(self):
+        """The deployment's object store, as the test reads it (S3: its own scratch folder)."""
+        from dancegraph.store import open_store
+
+        url = self.env.get("DANCEGRAPH_STORE_URL") or self.store_root
+        return open_store(url, self.home / "test-scratch")
+
     def _spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         log = self.home / f"{name}.log"
         self.logs[name] = log
+        own = {}
+        if self.env.get("DANCEGRAPH_STORE_URL"):  # S3: no folder shared between processes
+            own["DANCEGRAPH_STORE_ROOT"] = str(self.home / f"scratch-{name}")
         proc = subprocess.Popen(
             cmd,
-            env={**self.env, **(env or {})},
+            env={**self.env, **own, **(env or {})},
             cwd=str(REPO_ROOT),
             stdout=open(log, "ab"),  # noqa: SIM115 (the child owns it)
             stderr=subprocess.STDOUT,
@@ -237,9 +252,9 @@ class Cluster:
             "--without-mingle",
         ]
         proc = self._spawn(name, cmd, env)
-        wait_for(
+        wait_for(  # a hang bound, not a speed test: the kernel warm-up is slow on a busy host
             lambda: "worker process ready" in self.log_text(name) or proc.poll() is not None,
-            60,
+            WORKER_START_S,
             f"worker {name} to start",
         )
         assert proc.poll() is None, self.log_text(name)[-3000:]
@@ -371,14 +386,33 @@ class Cluster:
         return done
 
     def download(self, job_id: str, name: str) -> bytes:
-        r = httpx.get(f"{self.api_url}/v1/jobs/{job_id}/{name}", headers=self.headers(), timeout=60)
+        """A result file as a client gets it (following the S3 store's presigned redirect)."""
+        r = httpx.get(
+            f"{self.api_url}/v1/jobs/{job_id}/{name}",
+            headers=self.headers(),
+            timeout=60,
+            follow_redirects=True,
+        )
         assert r.status_code == 200, (name, r.status_code, r.text[:500])
         return r.content
 
 
-def make_cluster(home: Path, database_url: str, broker_url: str, store_root: Path) -> Cluster:
+def make_cluster(
+    home: Path,
+    database_url: str,
+    broker_url: str,
+    store_root: Path,
+    store_url: str = "",
+    store_env: dict[str, str] | None = None,
+) -> Cluster:
+    """A deployment's environment: the filesystem store at ``store_root``, or with
+    ``store_url`` the S3 store (``store_env``: its endpoint and credentials)."""
     home.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
+    env.pop("DANCEGRAPH_STORE_URL", None)
+    env.update(store_env or {})
+    if store_url:
+        env["DANCEGRAPH_STORE_URL"] = store_url
     env.update(
         {
             "DANCEGRAPH_HOME": str(home),
@@ -389,7 +423,9 @@ def make_cluster(home: Path, database_url: str, broker_url: str, store_root: Pat
             "DANCEGRAPH_GRAPHSTORE_URL": "local",
             "DANCEGRAPH_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S),
             "DANCEGRAPH_WEBHOOK_BACKOFF_S": "0.5",
-            "DANCEGRAPH_WEBHOOK_SECRET": "worker-test-secret",
+            "DANCEGRAPH_WEBHOOK_SECRET": WEBHOOK_SECRET,
+            "DANCEGRAPH_PREVIEW_SECRET": "worker-test-preview-secret-" + "p" * 32,
+            "DANCEGRAPH_WEBHOOK_ALLOW_NETWORKS": '["127.0.0.1/32"]',  # the local test receivers
             "PYTHONUNBUFFERED": "1",
         }
     )
@@ -428,6 +464,14 @@ def copy_store(src: Path, dst: Path) -> Path:
     """A private copy of a prepared store (graphs and datasets), so tests never share results."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("jobs", "tmp"))
     return dst
+
+
+def upload_store(src: Path, store) -> None:
+    """A prepared filesystem store's objects (graphs, datasets) copied into another store."""
+    for path in sorted(src.rglob("*")):
+        rel = path.relative_to(src).as_posix()
+        if path.is_file() and not rel.startswith(("jobs/", "tmp/")):
+            store.put_file(rel, path)
 
 
 # --- fixtures -------------------------------------------------------------------------------

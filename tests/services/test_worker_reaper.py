@@ -4,6 +4,7 @@ filesystem broker of the embedded default (no servers needed)."""
 from __future__ import annotations
 
 import base64
+import io
 import json
 from datetime import timedelta
 from pathlib import Path
@@ -117,7 +118,7 @@ def test_reaper_requeues_fails_and_reenqueues_from_the_rows(embedded):
     tenant = _tenant()
     old = utcnow() - timedelta(seconds=3 * TIMEOUT_S)
     stuck = _job(tenant, status="running", attempts=1, heartbeat_at=old)
-    exhausted = _job(tenant, status="running", attempts=3, heartbeat_at=old)
+    exhausted = _job(tenant, status="running", attempts=3, crashes=2, heartbeat_at=old)
     lost = _job(tenant, updated_at=old)  # queued, but its message is gone
     alive = _job(tenant, status="running", attempts=1, heartbeat_at=utcnow())
     fresh = _job(tenant)  # queued just now
@@ -208,3 +209,67 @@ def test_jobs_waiting_for_the_fbx_queue_are_not_stuck(embedded):
     assert [(m[0], m[1], m[2]) for m in _queued_messages(embedded)] == [
         ("dancegraph.export_fbx", waiting, "fbx")
     ]
+
+
+def test_transient_retries_do_not_use_up_the_crash_budget(embedded):
+    """A graph-store outage retried a job 4 times (4 claims); then its worker died once. That is
+    one crash, not the fourth: the job is requeued, and fails only at its third crash."""
+    tenant = _tenant()
+    old = utcnow() - timedelta(seconds=3 * TIMEOUT_S)
+    job_id = _job(tenant, status="running", attempts=4, heartbeat_at=old)
+    report = reaper.reap_once(embedded)
+    assert report.requeued == [job_id] and not report.failed
+    row = state.load(job_id)
+    assert (row.status, row.crashes, row.error_code) == ("queued", 1, None)
+    for crashes in (2, 3):
+        with db.session_scope() as session:
+            session.execute(
+                update(Job).where(Job.id == job_id).values(status="running", heartbeat_at=old)
+            )
+        report = reaper.reap_once(embedded)
+        assert state.load(job_id).crashes == crashes
+    row = state.load(job_id)
+    assert report.failed == [job_id] and row.error_code == "worker_lost"
+    assert row.error_message == "the job's worker stopped responding 3 times"
+
+
+def test_reaper_sweeps_every_kind_of_leftover(embedded):
+    """What killed processes leave: a partial upload, a temporary file, a song stored by an API
+    killed before its row, a result version no manifest names. Live things stay."""
+    import os
+    import time
+
+    from services.config import object_store
+
+    store = object_store(embedded)
+    past = time.time() - 3 * TIMEOUT_S
+    store.scratch.mkdir(parents=True, exist_ok=True)
+    upload = store.scratch / ".upload-abc"
+    upload.write_bytes(b"x" * 1000)
+    tmp_file = store.scratch / ".tmp-def"
+    tmp_file.write_bytes(b"y")
+    fresh_upload = store.scratch / ".upload-live"
+    fresh_upload.write_bytes(b"z")
+    orphan_key, _ = store.put_stream(io.BytesIO(b"a song nobody owns"))
+    used_key, _ = store.put_stream(io.BytesIO(b"a song a job owns"))
+    tenant = _tenant()
+    with db.session_scope() as session:
+        jobs.create_job(
+            session,
+            tenant_id=tenant,
+            spec={"dataset": "demo"},
+            audio_key=used_key,
+            audio_sha256=used_key.rsplit("/", 1)[1],
+        )
+    store.put_bytes("jobs/j-dead/r-0123/alternatives/0.bvh", b"HIERARCHY")
+    for path in (upload, tmp_file, store.path(orphan_key), store.path(used_key)):
+        os.utime(path, (past, past))
+    os.utime(store.path("jobs/j-dead/r-0123/alternatives/0.bvh"), (past, past))
+
+    report = reaper.reap_once(embedded)
+
+    assert report.tmp_removed == 2 and not upload.exists() and not tmp_file.exists()
+    assert fresh_upload.exists()
+    assert report.orphans_removed == 2  # the unowned song and the unpublished result version
+    assert not store.exists(orphan_key) and store.exists(used_key)
+    assert list(store.list("jobs")) == []

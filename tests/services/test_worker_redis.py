@@ -1,6 +1,7 @@
 """Production mode end to end: PostgreSQL, Redis, the API (uvicorn) and Celery worker processes,
 the real pipeline (analysis, graph search, render, FBX through Blender) on a generated song and
-the demo motion library."""
+the demo motion library — once on the filesystem object store, once on the S3 store (a real
+S3-protocol server over HTTP, every process with its own local scratch: no shared folder)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,17 @@ import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 
 from services import webhooks
 from services.worker import pipeline
+from tests.conftest import S3_ENV, new_bucket
 from tests.services.test_worker_harness import (  # noqa: F401 (fixtures)
     DATASET,
+    REDIS_DB,
     VENV_BIN,
+    WEBHOOK_SECRET,
     copy_store,
     create_key,
     create_pg_database,
@@ -32,6 +37,7 @@ from tests.services.test_worker_harness import (  # noqa: F401 (fixtures)
     require_servers,
     restart_redis,
     songs,
+    upload_store,
     wait_for,
     write_test_song,
 )
@@ -42,32 +48,42 @@ pytestmark = [pytest.mark.services, pytest.mark.slow]
 BVH_SPEC = {"dataset": DATASET, "alternatives": 2, "output": {"formats": ["bvh"]}}
 
 
-def _seed_analysis(store_root: Path, wav: Path) -> None:
+def _seed_analysis(store, wav: Path) -> None:
     """Analyse ``wav`` once into the store's cache (``analysis/<sha256>.json``), as a job would."""
-    from dancegraph.store import ObjectStore
-
-    store = ObjectStore(store_root)
     with open(wav, "rb") as fh:
         key, _ = store.put_stream(fh)
     pipeline.analyze(store, key, key.rsplit("/", 1)[-1])
 
 
-@pytest.fixture(scope="module")
-def cluster(tmp_path_factory, demo_store, songs):  # noqa: F811
+@pytest.fixture(scope="module", params=["fs", "s3"])
+def cluster(request, tmp_path_factory, demo_store, songs):  # noqa: F811
     require_servers()
     flush_redis()
-    home = tmp_path_factory.mktemp("redis-mode")
+    home = tmp_path_factory.mktemp(f"redis-mode-{request.param}")
     url = create_pg_database()
-    store_root = copy_store(demo_store, home / "store")
-    c = make_cluster(home, url, redis_url(), store_root)
-    c.song = write_test_song(songs, seed=1, seconds=16.0)
-    _seed_analysis(store_root, c.song)  # the shared song is analysed once for the module
-    c.api_key = create_key(url, "acme")
-    c.start_api()
-    c._spawn("reaper", [str(VENV_BIN / "dancegraph"), "reaper", "--interval", "1"])
-    c.start_worker("w1")
-    yield c
-    c.stop_all()
+    with pytest.MonkeyPatch.context() as mp:
+        if request.param == "fs":
+            c = make_cluster(home, url, redis_url(), copy_store(demo_store, home / "store"))
+        else:
+            endpoint = request.getfixturevalue("s3_endpoint")
+            store_env = {"AWS_ENDPOINT_URL": endpoint, **S3_ENV}
+            for name, value in store_env.items():
+                mp.setenv(name, value)  # the test process reads the store too
+            bucket = new_bucket(endpoint)
+            c = make_cluster(
+                home, url, redis_url(), home / "scratch", f"s3://{bucket}/store", store_env
+            )
+            upload_store(demo_store, c.store)
+        try:  # whatever started is stopped, also when a start fails
+            c.song = write_test_song(songs, seed=1, seconds=16.0)
+            _seed_analysis(c.store, c.song)  # the shared song is analysed once for the module
+            c.api_key = create_key(url, "acme")
+            c.start_api()
+            c._spawn("reaper", [str(VENV_BIN / "dancegraph"), "reaper", "--interval", "1"])
+            c.start_worker("w1")
+            yield c
+        finally:
+            c.stop_all()
     drop_pg_database(url)
     flush_redis()
 
@@ -129,7 +145,7 @@ def test_job_through_api_in_redis_mode_with_fbx_and_signed_webhook(cluster, tmp_
     assert len(calls) == 2  # 503, then 200: delivered once, not again
     for call in calls:
         assert webhooks.verify(
-            call["body"], call["headers"][webhooks.SIGNATURE_HEADER], "worker-test-secret"
+            call["body"], call["headers"][webhooks.SIGNATURE_HEADER], WEBHOOK_SECRET
         )
     assert (
         calls[0]["headers"][webhooks.DELIVERY_HEADER]
@@ -173,8 +189,7 @@ def test_public_submit_task_with_a_plain_celery_client(cluster):
     assert done[bad_audio]["error"]["code"] == "audio_missing"
 
     # Idempotent: the same submission again, and the finished job's tasks sent again, change nothing.
-    folder = cluster.store_root / "jobs" / good
-    before = {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()}
+    before = list(cluster.store.entries(f"jobs/{good}"))
     row = job_row(cluster.database_url, good)
     log0 = cluster.log_text("w1")
     n_dropped, n_fbx = log0.count("not claimed"), log0.count("dancegraph.export_fbx")
@@ -200,7 +215,7 @@ def test_public_submit_task_with_a_plain_celery_client(cluster):
         row.attempts,
         row.finished_at,
     )
-    assert {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()} == before
+    assert list(cluster.store.entries(f"jobs/{good}")) == before
 
 
 def test_twenty_concurrent_submissions_all_complete(cluster):
@@ -213,6 +228,15 @@ def test_twenty_concurrent_submissions_all_complete(cluster):
         d.get("error") for d in done.values()
     ]
     assert cluster.download(ids[-1], "alternatives/1.bvh").startswith(b"HIERARCHY")
+    direct = httpx.get(
+        f"{cluster.api_url}/v1/jobs/{ids[0]}/alternatives/0.bvh", headers=cluster.headers()
+    )
+    if cluster.env.get("DANCEGRAPH_STORE_URL"):  # S3: a presigned URL, the bytes skip the API
+        assert direct.status_code == 307, direct.text
+        assert direct.headers["location"].startswith(cluster.env["AWS_ENDPOINT_URL"])
+        assert "X-Amz-Signature=" in direct.headers["location"]
+    else:
+        assert direct.status_code == 200 and direct.content.startswith(b"HIERARCHY")
 
 
 def test_sigkill_mid_job_still_completes_once_with_intact_files(cluster, songs, tmp_path):  # noqa: F811
@@ -238,12 +262,7 @@ def test_sigkill_mid_job_still_completes_once_with_intact_files(cluster, songs, 
     logs = cluster.log_text("w1") + cluster.log_text("w2")
     finished = [json.loads(line) for line in logs.splitlines() if '"job succeeded"' in line]
     assert [e["job_id"] for e in finished].count(job_id) == 1  # completed once
-    store_files = sorted(
-        p.relative_to(cluster.store_root / "jobs" / job_id).as_posix()
-        for p in (cluster.store_root / "jobs" / job_id).rglob("*")
-        if p.is_file()
-    )
-    assert store_files == [
+    assert sorted(cluster.store.published(f"jobs/{job_id}")) == [
         "alternatives/0.bvh",
         "alternatives/1.bvh",
         "search.json",
@@ -261,10 +280,10 @@ def test_redis_restart_while_jobs_wait_loses_no_job(cluster):
 
     cluster.kill("w1", sig=signal.SIGTERM)  # no worker: the jobs wait in Redis
     ids = [cluster.submit(cluster.song, BVH_SPEC)["id"] for _ in range(3)]
-    r = redis.Redis(host="127.0.0.1", port=6379, db=11)
+    r = redis.Redis(host="127.0.0.1", port=6379, db=REDIS_DB)
     assert r.llen("analysis") == 3
     restart_redis()  # no persistence: the three messages are gone
-    r = redis.Redis(host="127.0.0.1", port=6379, db=11)
+    r = redis.Redis(host="127.0.0.1", port=6379, db=REDIS_DB)
     assert r.llen("analysis") == 0
     assert {job_row(cluster.database_url, j).status for j in ids} == {"queued"}
     cluster.start_worker("w3")

@@ -49,3 +49,26 @@ def test_public_tasks_are_registered_on_their_queues():
     assert conf.task_acks_late and conf.task_reject_on_worker_lost
     assert conf.worker_prefetch_multiplier == 1
     assert conf.task_time_limit > conf.task_soft_time_limit
+
+
+def test_a_full_disk_is_transient_not_the_jobs_fault(tmp_path):
+    """The OSError of a real full filesystem (a 64 KiB tmpfs) is retried later, not a failure."""
+    import subprocess
+
+    from dancegraph.store import FileStore
+
+    root = tmp_path / "tiny"
+    root.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)], capture_output=True
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        store = FileStore(root)
+        with pytest.raises(OSError) as full:
+            store.put_bytes("jobs/x/timeline.json", b"x" * 200_000)
+        assert tasks.is_transient(full.value)
+        assert list(store.list("jobs")) == []  # nothing half-written
+    finally:
+        subprocess.run(["umount", str(root)], capture_output=True)

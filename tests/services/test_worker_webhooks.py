@@ -11,6 +11,7 @@ import pytest
 from services import webhooks
 
 SECRET = "test-secret"
+LOCAL = ["127.0.0.1/32"]  # the test receivers listen on loopback: allowed explicitly
 
 
 class Receiver:
@@ -27,6 +28,8 @@ class Receiver:
                 receiver.calls.append({"headers": dict(self.headers), "body": body})
                 status = receiver.statuses.pop(0) if receiver.statuses else 200
                 self.send_response(status)
+                if 300 <= status < 400:  # a redirect back to this receiver
+                    self.send_header("Location", "/redirected")
                 self.send_header("Content-Length", "0")
                 self.end_headers()
 
@@ -61,7 +64,13 @@ def test_delivery_retries_transient_failures_then_succeeds_signed():
     with Receiver([503, 500]) as rx:
         body = webhooks.encode_payload("job.succeeded", {"id": "j1"})
         result = webhooks.deliver(
-            rx.url, body, SECRET, attempts=5, base_delay=0.5, sleep=sleeps.append
+            rx.url,
+            body,
+            SECRET,
+            attempts=5,
+            base_delay=0.5,
+            sleep=sleeps.append,
+            allow_networks=LOCAL,
         )
     assert result.ok and result.attempts == 3 and result.status_code == 200
     assert sleeps == [0.5, 1.0]  # exponential backoff
@@ -79,12 +88,20 @@ def test_delivery_is_bounded_and_client_errors_are_final():
     sleeps: list[float] = []
     with Receiver([500] * 10) as rx:
         result = webhooks.deliver(
-            rx.url, b"{}", SECRET, attempts=3, base_delay=0.1, sleep=sleeps.append
+            rx.url,
+            b"{}",
+            SECRET,
+            attempts=3,
+            base_delay=0.1,
+            sleep=sleeps.append,
+            allow_networks=LOCAL,
         )
     assert not result.ok and result.attempts == 3 and len(rx.calls) == 3 and result.retryable
     assert sleeps == [0.1, 0.2]
     with Receiver([410]) as rx:
-        result = webhooks.deliver(rx.url, b"{}", SECRET, attempts=5, sleep=sleeps.append)
+        result = webhooks.deliver(
+            rx.url, b"{}", SECRET, attempts=5, sleep=sleeps.append, allow_networks=LOCAL
+        )
     assert not result.ok and result.attempts == 1 and not result.retryable
     assert result.error == "HTTP 410"
 
@@ -93,10 +110,68 @@ def test_unreachable_receiver_is_retried_not_raised():
     with Receiver() as rx:
         url = rx.url
     result = webhooks.deliver(
-        url, b"{}", SECRET, attempts=2, base_delay=0.0, timeout=2, sleep=lambda s: None
+        url,
+        b"{}",
+        SECRET,
+        attempts=2,
+        base_delay=0.0,
+        timeout=2,
+        sleep=lambda s: None,
+        allow_networks=LOCAL,
     )
     assert not result.ok and result.attempts == 2 and result.status_code is None
     assert result.retryable and "ConnectError" in (result.error or "")
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "http://127.0.0.1:8001/v1/graphs",
+        "http://127.0.0.1:5432/",
+        "http://10.1.2.3/hook",
+        "http://172.16.0.1/hook",
+        "http://192.168.1.1/hook",
+        "http://[::1]:8000/hook",
+        "http://[::ffff:127.0.0.1]/hook",
+        "http://169.254.169.254/latest/meta-data/",
+        "http://100.64.0.1/hook",
+        "http://0.0.0.0:8000/",
+        "http://localhost:8000/",
+        "http://metadata.google.internal/computeMetadata/v1/",
+        "http://instance-data/latest/",
+    ],
+)
+def test_internal_callback_targets_are_refused_and_never_contacted(url):
+    with pytest.raises(webhooks.CallbackForbidden) as err:
+        webhooks.check_callback_url(url)
+    assert err.value.code == "callback_url_forbidden" and err.value.status == 422
+    result = webhooks.deliver(url, b"{}", SECRET, attempts=3, sleep=lambda s: None)
+    assert not result.ok and result.attempts == 1 and not result.retryable
+    assert result.error.startswith("callback_url_forbidden")
+
+
+def test_a_name_resolving_to_a_local_address_is_refused_at_send_time():
+    import ipaddress
+    import socket
+
+    name = socket.gethostname()  # not on the name list: only DNS tells where it points
+    if ipaddress.ip_address(socket.gethostbyname(name)).is_global:
+        pytest.skip(f"this host's name {name!r} resolves to a public address")
+    with Receiver() as rx:
+        port = rx.url.split(":")[2].split("/")[0]
+        url = f"http://{name}:{port}/hook"
+        webhooks.check_callback_url(url)  # a name: passes the submit check
+        result = webhooks.deliver(url, b"{}", SECRET, attempts=1, sleep=lambda s: None)
+    assert not result.ok and result.error.startswith("callback_url_forbidden")
+    assert rx.calls == []
+
+
+def test_redirects_are_not_followed():
+    with Receiver([307]) as rx:
+        result = webhooks.deliver(
+            rx.url, b"{}", SECRET, attempts=1, sleep=lambda s: None, allow_networks=LOCAL
+        )
+    assert not result.ok and result.status_code == 307 and len(rx.calls) == 1
 
 
 @pytest.mark.parametrize("attempt,expected", [(0, 2.0), (1, 4.0), (3, 16.0), (10, 60.0)])

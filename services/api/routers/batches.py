@@ -65,6 +65,7 @@ BATCH_BODY = {
         200: {"model": BatchOut, "description": "idempotent replay"},
         400: PROBLEM,
         401: PROBLEM,
+        409: PROBLEM,
         413: PROBLEM,
         415: PROBLEM,
         422: PROBLEM,

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Depends, Header, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
 from sqlalchemy.orm import Session
 
 from dancegraph.store import ObjectStore
@@ -254,21 +254,19 @@ _MEDIA = {
 }
 
 
-_DOWNLOAD_RESPONSES = {
+REDIRECT: dict[int | str, dict[str, Any]] = {
+    307: {"description": "S3 store: the file at a presigned URL (Location)"}
+}
+
+
+_DOWNLOAD_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {"content": {"application/octet-stream": {}, "text/plain": {}}},
+    **REDIRECT,
     **AUTH_ERRORS,
     404: PROBLEM,
     409: PROBLEM,
     422: PROBLEM,
 }
-
-
-def _result_file(store: ObjectStore, job, rel: str, media: str, missing: str) -> FileResponse:
-    """The job's result file ``rel`` as a download; 404 ``result_not_found`` (``missing``)."""
-    path = store.path(jobs.result_key(job.id, rel))
-    if not path.is_file():
-        raise ApiError(404, "result_not_found", missing, field="k")
-    return FileResponse(path, media_type=media, filename=f"{job.id}-{rel.rsplit('/', 1)[-1]}")
 
 
 @router.get(
@@ -284,10 +282,30 @@ def download_alternative_on_rig(
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
 ):
     job = _finished_job(db, tenant, job_id)
-    missing = f"job {job_id} has no alternative {k} on a rig as {fmt} (spec output.rig)"
-    return _result_file(store, job, f"alternatives/{k}.rig.{fmt}", _MEDIA[fmt], missing)
+    what = f"alternative {k} on a rig as {fmt} (spec output.rig)"
+    key = _result_key(store, job, f"alternatives/{k}.rig.{fmt}", what, "k")
+    return result_response(store, settings, key, f"{job.id}-{k}.rig.{fmt}", _MEDIA[fmt])
+
+
+def result_response(
+    store: ObjectStore, settings: Settings, key: str, filename: str, media_type: str
+) -> Response:
+    """A stored file as the answer: a 307 redirect to a presigned URL where the store hands
+    them out (S3: the bytes never pass through the API), else the file itself."""
+    url = store.download_url(key, filename, media_type, settings.presigned_url_ttl_s)
+    if url is not None:
+        return RedirectResponse(url, status_code=307, headers={"Cache-Control": "no-store"})
+    return FileResponse(store.local_path(key), media_type=media_type, filename=filename)
+
+
+def _result_key(store: ObjectStore, job, name: str, what: str, field: str) -> str:
+    key = jobs.result_files(store, job.id).get(name)
+    if key is None:
+        raise ApiError(404, "result_not_found", f"job {job.id} has no {what}", field=field)
+    return key
 
 
 @router.get(
@@ -303,10 +321,11 @@ def download_alternative(
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
 ):
     job = _finished_job(db, tenant, job_id)
-    missing = f"job {job_id} has no alternative {k} as {fmt}"
-    return _result_file(store, job, f"alternatives/{k}.{fmt}", _MEDIA[fmt], missing)
+    key = _result_key(store, job, f"alternatives/{k}.{fmt}", f"alternative {k} as {fmt}", "k")
+    return result_response(store, settings, key, f"{job.id}-{k}.{fmt}", _MEDIA[fmt])
 
 
 @router.get(
@@ -315,6 +334,7 @@ def download_alternative(
     response_class=FileResponse,
     responses={
         200: {"content": {"application/json": {}}},
+        **REDIRECT,
         **AUTH_ERRORS,
         404: PROBLEM,
         409: PROBLEM,
@@ -325,9 +345,8 @@ def download_timeline(
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
 ):
     job = _finished_job(db, tenant, job_id)
-    path = store.path(jobs.result_key(job.id, "timeline.json"))
-    if not path.is_file():
-        raise ApiError(404, "result_not_found", f"job {job_id} has no timeline", field="job_id")
-    return FileResponse(path, media_type="application/json", filename=f"{job.id}-timeline.json")
+    key = _result_key(store, job, "timeline.json", "timeline", "job_id")
+    return result_response(store, settings, key, f"{job.id}-timeline.json", "application/json")

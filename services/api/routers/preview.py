@@ -22,14 +22,14 @@ from dancegraph.store import ObjectStore
 from services import jobs
 from services.api.deps import get_db, get_settings_dep, get_store, get_tenant_or_preview_token
 from services.api.preview_tokens import make_token
-from services.api.routers.jobs import PROBLEM, require_succeeded
+from services.api.routers.jobs import PROBLEM, require_succeeded, result_response
 from services.api.views import job_url
 from services.common.problems import ApiError
 from services.config import Settings
 from services.models import Job, Tenant
 from services.preview_server import (
     audio_media_type,
-    json_file_response,
+    json_bytes_response,
     json_response,
     pose_json_gz,
     render_page,
@@ -63,12 +63,7 @@ def pose_cache_prefix(job_id: str) -> str:
 
 def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool]:
     """How many alternatives the job has (library ``<k>.bvh``), and whether they are on a rig."""
-    folder = store.path(jobs.result_key(job.id, "alternatives"))
-    if not folder.is_dir():
-        return 0, False
-    names = [p.name for p in folder.glob("*.bvh")]
-    on_rig = [n for n in names if n.endswith(".rig.bvh")]
-    return len(names) - len(on_rig), bool(on_rig)
+    return len(jobs.bvh_files(store, job.id)), bool(jobs.bvh_files(store, job.id, rig=True))
 
 
 @router.get(
@@ -107,11 +102,15 @@ def preview_page(
     response_class=FileResponse,
     responses={200: {"content": {"audio/*": {}}}, **ERRORS},
 )
-def preview_audio(job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)):
-    path = store.path(job.audio_key)
-    if not path.is_file():
+def preview_audio(
+    job: Job = Depends(preview_job),
+    store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
+):
+    if not store.exists(job.audio_key):
         raise ApiError(404, "result_not_found", f"job {job.id} has no stored song", field="job_id")
-    return FileResponse(path, media_type=audio_media_type(job.audio_format or job.audio_filename))
+    media = audio_media_type(job.audio_format or job.audio_filename)
+    return result_response(store, settings, job.audio_key, job.audio_filename or "audio", media)
 
 
 @router.get(
@@ -122,10 +121,10 @@ def preview_audio(job: Job = Depends(preview_job), store: ObjectStore = Depends(
 def preview_timeline(
     request: Request, job: Job = Depends(preview_job), store: ObjectStore = Depends(get_store)
 ):
-    path = store.path(jobs.result_key(job.id, TIMELINE))
-    if not path.is_file():
+    key = jobs.result_files(store, job.id).get(TIMELINE)
+    if key is None:
         raise ApiError(404, "result_not_found", f"job {job.id} has no timeline", field="job_id")
-    return json_file_response(request, path)
+    return json_bytes_response(request, store.get_bytes(key))
 
 
 @router.get(
@@ -142,12 +141,13 @@ def preview_poses(
     job: Job = Depends(preview_job),
     store: ObjectStore = Depends(get_store),
 ):
+    files = jobs.result_files(store, job.id)
     name = f"alternatives/{k}.rig.bvh" if skeleton == "rig" else f"alternatives/{k}.bvh"
-    bvh = store.path(jobs.result_key(job.id, name))
-    scale = (
-        rig_unit_scale(store.path(jobs.result_key(job.id, TIMELINE)), k)
-        if skeleton == "rig"
-        else 1.0
-    )
-    gz = pose_json_gz(bvh, k, store, pose_cache_prefix(job.id), scale=scale)
+    key = files.get(name)
+    if key is None:
+        raise ApiError(404, "result_not_found", f"no alternative {k} ({skeleton})", field="k")
+    scale = 1.0
+    if skeleton == "rig" and TIMELINE in files:
+        scale = rig_unit_scale(store.local_path(files[TIMELINE]), k)
+    gz = pose_json_gz(store.local_path(key), k, store, pose_cache_prefix(job.id), scale=scale)
     return json_response(request, gz)
