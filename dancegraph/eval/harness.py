@@ -507,7 +507,9 @@ def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
                 base = _mean(c for _, c in pairs)
                 cell[chance] = base
                 cell[f"gain_{chance}"] = _mean(v - c for v, c in pairs)
-                cell[f"ratio_{chance}"] = value / base if pairs and base else None
+                cell[f"ratio_{chance}"] = (
+                    value / base if pairs and value is not None and base else None
+                )
             entry[key] = cell
         table[row] = entry
     return table

@@ -177,6 +177,7 @@ def match_nodes(
             )
         bit = np.uint32(graph.tag_bit(tag))
         return np.nonzero(np.asarray(graph.node_tags) & bit)[0]
+    assert node is not None  # the spec's validator: a node, or a tag
     take, _, rest = node.partition(":")
     if rest == "*":
         if take not in graph.clips:
@@ -755,7 +756,7 @@ def _variable_costs(
     if empty.size:
         members = np.nonzero(var == empty[0])[0]
         t = int(members[0])
-        if parity[members].any() and all(allowed.at(m).any() for m in members):
+        if parity[members].any() and all(allowed.at(int(m)).any() for m in members):
             raise SpecError(
                 f"bars {members.tolist()} must mirror each other (structure.mirror) but the excludes leave no node with an allowed mirror",
                 code="constraint_conflict",

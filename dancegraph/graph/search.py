@@ -233,6 +233,7 @@ def _follow_signature(
     from dancegraph.graph.explain import breakdown  # imports this module's path helpers
 
     target, motif, var = problem.target, problem.motif, problem.var
+    assert target is not None and spec.signature is not None  # run() calls this only then
     scale = SIGNATURE_SCALE * spec.signature.weight * problem.music["n"]
 
     def scored(nodes: np.ndarray) -> tuple[float, Alternative, float, np.ndarray]:

@@ -108,7 +108,7 @@ def _accessor(doc: dict, buffers: list[bytes], k: int, path: Path) -> np.ndarray
     )
     out = np.ascontiguousarray(rows).view(dtype).reshape(count, width)
     if acc.get("normalized") and dtype.kind in "iu":
-        out = out.astype(float) / np.iinfo(dtype).max
+        out = out.astype(float) / np.iinfo(dtype.str).max
     return out
 
 

@@ -227,12 +227,18 @@ def plan_retarget(source: Skeleton, rig: Rig, source_roles: RoleMap | None = Non
         clearance = np.array([tgt_pos[j, 1] + off[1] - floor for j, off in side_pts])
         feet.append((side_pts, clearance))
     legs = [
-        tuple(target.index(tgt_roles[f"{side}_{p}"]) for p in ("hip", "knee", "ankle"))
+        (
+            target.index(tgt_roles[f"{side}_hip"]),
+            target.index(tgt_roles[f"{side}_knee"]),
+            target.index(tgt_roles[f"{side}_ankle"]),
+        )
         for side in SIDES
     ]
     arms = [
         (
-            *(target.index(tgt_roles[f"{side}_{p}"]) for p in ("shoulder", "elbow", "wrist")),
+            target.index(tgt_roles[f"{side}_shoulder"]),
+            target.index(tgt_roles[f"{side}_elbow"]),
+            target.index(tgt_roles[f"{side}_wrist"]),
             source.index(src_roles[f"{side}_wrist"]),
         )
         for side in SIDES
@@ -391,7 +397,7 @@ def retarget(
 
     # 4. feet: contacts of the source, pelvis drop where a leg cannot reach, two-bone IK
     contacts = foot_contacts(src_pos, fps, source.skeleton, src_g)
-    extra_report = {}
+    extra_report: dict[str, object] = {}
     if params.foot_ik:
         blend = max(1, int(round(params.contact_blend_s * fps)))
         corr, weight, anchors = _foot_targets(plan, pos, g, contacts, blend)
@@ -581,9 +587,9 @@ def retarget_report(
     per_bone = {}
     angles = []
     for role, s, se, t, te in plan.limbs:
-        a = _angle(src_pos[:, se] - src_pos[:, s], pos[:, te] - pos[:, t])
-        per_bone[role] = round(float(np.median(a)), 3)
-        angles.append(a)
+        angle = _angle(src_pos[:, se] - src_pos[:, s], pos[:, te] - pos[:, t])
+        per_bone[role] = round(float(np.median(angle)), 3)
+        angles.append(angle)
     all_angles = np.concatenate(angles) if angles else np.zeros(1)
 
     def max_step(q: np.ndarray) -> float:

@@ -130,7 +130,7 @@ def _fingers(pattern: str, left: str, right: str, names: dict[str, str]) -> dict
 
 _FINGER_NAMES = {f: f for f in FINGERS}
 # Mixamo's limb names, also those of CMU's MotionBuilder-friendly layout (LeftUpLeg, ...)
-_MIXAMO_LIMBS = {
+_MIXAMO_LIMBS: dict[str, tuple[str, ...]] = {
     "{s}_collar": ("{S}shoulder",),
     "{s}_shoulder": ("{S}arm",),
     "{s}_elbow": ("{S}forearm",),
@@ -142,7 +142,7 @@ _MIXAMO_LIMBS = {
 }
 
 # SMPL's joint names (left_knee, or L_Knee in some exports); its "foot" is the toe joint
-_SMPL_LIMBS = {
+_SMPL_LIMBS: dict[str, tuple[str, ...]] = {
     f"{{s}}_{part}": (f"{{S}}{name}",)
     for part, name in (
         ("collar", "collar"),
@@ -726,7 +726,7 @@ def canonical_frame(pos: np.ndarray, index: dict[str, int], roles: dict[str, str
     from scipy.spatial.transform import Rotation
 
     hips = pos[index[roles["hips"]]]
-    top = next((r for r in ("head", "neck", "upper_chest", "chest", "spine") if r in roles), None)
+    top = next(r for r in ("head", "neck", "upper_chest", "chest", "spine") if r in roles)
     up = _snap_axis(pos[index[roles[top]]] - hips)
     left = pos[index[roles["left_hip"]]] - pos[index[roles["right_hip"]]]
     left -= (left @ up) * up
@@ -822,7 +822,7 @@ def build_rig(
             normals=None if mesh.normals is None else np.asarray(mesh.normals, dtype=float),
         )
     roles = RoleMap(found.roles, found.how, [n for n in found.unmapped if n in set(names_o)])
-    channels = [
+    channels: list[tuple[str, ...]] = [
         ("Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation")
         if j == 0
         else ("Zrotation", "Xrotation", "Yrotation")

@@ -133,11 +133,11 @@ def _read(path: str, keep: list) -> dict[str, np.ndarray]:  # pragma: no cover -
                 mats[k] = _matrix(n.node_to_world)
         return mats[k]
 
-    mats = np.stack([bind_of(k) for k in range(len(joints))]) if joints else np.zeros((0, 4, 4))
-    out = {
+    binds = np.stack([bind_of(k) for k in range(len(joints))]) if joints else np.zeros((0, 4, 4))
+    out: dict[str, np.ndarray] = {
         "names": np.array([n.name for n in joints], dtype=str),
         "parents": np.array(parents, dtype=np.int64),
-        "bind": mats,
+        "bind": binds,
     }
     pos_all, tri_all, jnt_all, wgt_all = [], [], [], []
     base = 0
@@ -196,7 +196,7 @@ if __name__ == "__main__":  # pragma: no cover - the child process
     alive: list = []
     arrays = _read(sys.argv[1], alive)
     tmp = sys.argv[2] + ".tmp.npz"
-    np.savez(tmp, **arrays)
+    np.savez(tmp, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle first
     Path(tmp).replace(sys.argv[2])
     sys.stdout.flush()
     sys.stderr.flush()

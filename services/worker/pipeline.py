@@ -308,12 +308,11 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
 
         spec = parse_spec(job.spec)
         on_rig = None
-        if spec.output.rig is not None:
+        rig_id = spec.output.rig
+        if rig_id is not None:
 
             def on_rig(bvh: Path, fbx: Path) -> None:
-                write_rig_fbx(
-                    store, settings.database_url, job.tenant_id, spec.output.rig, bvh, fbx
-                )
+                write_rig_fbx(store, settings.database_url, job.tenant_id, rig_id, bvh, fbx)
 
         files = export_fbx(store, job_id, float(spec.output.fps), on_file, on_rig)
         state.progress(job_id, "finalize", STAGES["finalize"])
