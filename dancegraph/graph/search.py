@@ -181,7 +181,12 @@ def run(graph: MotionGraph, problem: Problem, spec: Spec) -> SearchResult:
         penalty[used] += DIVERSITY_PENALTY
         mirrored = mirror_of[used]
         penalty[mirrored[mirrored >= 0]] += DIVERSITY_PENALTY
-    return SearchResult(alternatives=alternatives, report=problem.report)
+    return SearchResult(
+        alternatives=alternatives,
+        report=problem.report,
+        graph_name=graph.name,
+        graph_version=graph.version,
+    )
 
 
 def _memo(problem: Problem, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
