@@ -28,10 +28,13 @@ following it. The steps, over one :class:`GridParams`:
    around the peak (then a parabola); the beats where the folded activity (speeds and lift up,
    pauses down, each channel by its weight) is lowest at the stronger of the anchor harmonics
    (2: the two-beat step cycle, 4: the beat), i.e. pauses on the beat, the convention of
-   kinematic beats; the downbeat on the beat of the four that the kinematic beats hit most
-   often (every common rhythm signature has its downbeat slot set). When the two most hit are
-   closer than ``downbeat_margin`` of the range, the evidence cannot tell them apart and the
-   one that comes first in the section wins (a section starts on a bar).
+   kinematic beats. The downbeat, where the pauses hold most of the channel weight (a dance of
+   held accents, like the generated demo library): the beat the kinematic beats hit most often
+   (every common rhythm signature has its downbeat slot set; when two tie within
+   ``downbeat_margin`` of the range, the first in the section, which starts on a bar).
+   Where the steps lead (a stepping dance, like salsa): the beat at the low point of the
+   feet's bar cycle (their first bar harmonic), the one bar-level cue that two salsa partners
+   share (the pauses and the trunk's bar cycle differ between leader and follower).
 6. ``assemble``: the sections' even beats in one list (a beat closer than half a period to the
    previous section's last is dropped), and bars wherever a downbeat has three beats and the
    next downbeat after it.
@@ -63,6 +66,11 @@ N_HARMONICS = 8
 #: Sign of each ``step_signals`` channel as activity: speeds and lift rise with motion, the
 #: kinematic-beat envelope rises at pauses.
 CHANNEL_SIGNS: tuple[float, ...] = (1.0, 1.0, 1.0, -1.0)
+#: Column of ``step_signals`` holding the summed foot speed.
+FEET_CHANNEL = 1
+#: The kinematic beats place the downbeat when the pause channel holds at least this share of
+#: the channel weights; otherwise the feet's bar cycle does.
+PAUSE_SHARE = 0.5
 #: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (random
 #: walks score 0.5-1.2, i.e. below ``STEADY_MIN_CONFIDENCE``; the salsa takes 0.5-2.9).
 CONFIDENCE_RATIO: tuple[float, float] = (0.8, 2.3)
@@ -399,8 +407,9 @@ def section_phase(
     column the kinematic-beat envelope; ``channels``: ``channel_weights``. Returns
     ``(t0, down, clarity)``: the section's first beat ``t0`` (s; at most a quarter period
     before its first frame), which beat ``t0 + j · 60 / tempo`` (j = 0 … 3) starts the bars,
-    and the downbeat's clarity (gap between the two beats most hit by pauses over the range
-    of the four; 0 when they tie within ``downbeat_margin``).
+    and the downbeat's clarity: the gap between the two most downbeat-like beats over the
+    range of the four (pause hits, or the feet's bar cycle; see the module docstring), 0 for
+    a tie.
     """
     coef = _coefficients(signals, fps, start, np.array([tempo]))[0]  # (K, C)
     act = coef @ (np.asarray(CHANNEL_SIGNS)[: coef.shape[1]] * channels)  # (K,)
@@ -416,24 +425,27 @@ def section_phase(
     # to a quarter period before it counts as at the start)
     first = t_start - 0.25 * period + ((beat_phase * bar_s - t_start + 0.25 * period) % period)
     cand = first + period * np.arange(4)
-    # the downbeat: the beat the pauses (the kinematic-beat envelope, the last channel) hit
-    # most often, read at every bar of the section but the first and last beat period (a
-    # take's ends cannot hold a detected speed minimum)
-    edge = period * fps
-    last = signals.shape[0] - 1
-    bars = np.arange(int(np.ceil(signals.shape[0] / fps / bar_s)) + 1) * bar_s
-    times = (cand[:, None] + bars[None, :] - t_start) * fps
-    level = np.zeros(4)
-    for k, t in enumerate(times):
-        t = t[(t >= edge) & (t <= last - edge)]
-        if len(t):
-            level[k] = -np.interp(t, np.arange(last + 1), signals[:, -1]).mean()
+    index = np.round((cand / bar_s) % 1.0 * 4096).astype(int) % 4096
+    pauses_lead = bool(channels[-1] >= PAUSE_SHARE * channels.sum())
+    if pauses_lead:
+        # pauses lead: the beat the kinematic beats (the last channel) hit most often, read at
+        # every bar but the first and last beat period (a take's ends hold no speed minimum)
+        edge = period * fps
+        last = signals.shape[0] - 1
+        bars = np.arange(int(np.ceil(signals.shape[0] / fps / bar_s)) + 1) * bar_s
+        level = np.zeros(4)
+        for k, t in enumerate((cand[:, None] + bars[None, :] - t_start) * fps):
+            t = t[(t >= edge) & (t <= last - edge)]
+            if len(t):
+                level[k] = -np.interp(t, np.arange(last + 1), signals[:, -1]).mean()
+    else:
+        # steps lead: the low point of the feet's bar cycle (their bar harmonic)
+        level = np.real(coef[0, FEET_CHANNEL] * np.exp(2j * np.pi * psi))[index]
     order = np.argsort(level)
     spread = float(level.max() - level.min())
-    gap = float(level[order[1]] - level[order[0]])
-    clarity = gap / spread if spread > 0 else 0.0
-    if clarity < params.downbeat_margin:
-        # a tie: the earliest of the tied beats in the section (a section starts on a bar)
+    clarity = float(level[order[1]] - level[order[0]]) / spread if spread > 0 else 0.0
+    if pauses_lead and clarity < params.downbeat_margin:
+        # hit counts tie: the earliest of the tied beats (a section starts on a bar)
         down = int(np.flatnonzero(level - level[order[0]] <= params.downbeat_margin * spread)[0])
         return float(first), down, 0.0
     return float(first), int(order[0]), clarity

@@ -19,8 +19,8 @@ def _dance_signals(beats: np.ndarray, n_frames: int, seed: int = 0) -> np.ndarra
     """``(F, 4)`` step evidence of a dance on ``beats`` (s), the first a downbeat.
 
     The body moves between beats and pauses on them, a big step every two beats and a small
-    one between (a two-beat step cycle); the kinematic beats (pauses) fall on every downbeat
-    and on the third beat of every other bar.
+    one between (a two-beat step cycle), the feet quietest around the downbeat; the kinematic
+    beats (pauses) fall on every downbeat and on the third beat of every other bar.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(n_frames) / FPS
@@ -30,7 +30,9 @@ def _dance_signals(beats: np.ndarray, n_frames: int, seed: int = 0) -> np.ndarra
         inside = (u >= 0) & (u < 1)
         move[inside] += (1.0 if i % 2 == 0 else 0.4) * np.sin(np.pi * u[inside]) ** 2
     pauses = [b for i, b in enumerate(beats) if i % 4 == 0 or i % 8 == 2]
-    cols = [move, move**2, 0.5 * move, tempo.event_envelope(np.array(pauses), n_frames, FPS)]
+    bar_phase = np.interp(t, beats, np.arange(len(beats)) / 4.0)
+    feet = move**2 * (1.0 - 0.5 * np.cos(2 * np.pi * bar_phase))  # quietest at the downbeat
+    cols = [move, feet, 0.5 * move, tempo.event_envelope(np.array(pauses), n_frames, FPS)]
     x = np.stack(cols, axis=1) + 0.05 * rng.standard_normal((n_frames, 4))
     return (x - x.mean(axis=0)) / x.std(axis=0)
 
@@ -79,7 +81,7 @@ def test_known_tempo_places_phase_and_downbeat():
     grid = tempo.estimate_grid(_dance_signals(truth, int(30 * FPS)), FPS, tempo_bpm=110.0)
     assert np.max(tempo.nearest_distance(truth[1:-1], grid.beats)) < 0.003
     assert np.max(tempo.nearest_distance(grid.bars[:, 0], truth[::4])) < 0.003
-    assert grid.sections[0].downbeat_clarity > 0.25
+    assert grid.sections[0].downbeat_clarity > 0.1
 
 
 def test_noise_has_no_steady_beat():
