@@ -24,8 +24,9 @@ following it. The steps, over one :class:`GridParams`:
    changes. A section scores the prominence (peak − median) of its harmonic-sum spectrum
    ``Σ_k w_k Σ_c v_c |X_ck(T)|``; a split must add ``split_gain`` of the one-section score and
    sections last ``min_section_s`` at least.
-5. ``refine_tempo`` and ``section_phase``, per section: the tempo at 1/25 of the grid step
-   around the peak (then a parabola); the beats where the folded activity (speeds and lift up,
+5. ``refine_tempo`` and ``section_phase``, per section: the tempo refined within
+   ``refine_span`` of the peak to where the anchor harmonics are most coherent (the beats'
+   own step cycle stays in phase over the section), to 1/50 of the span and a parabola; the beats where the folded activity (speeds and lift up,
    pauses down, each channel by its weight) is lowest at the stronger of the anchor harmonics
    (2: the two-beat step cycle, 4: the beat), i.e. pauses on the beat, the convention of
    kinematic beats. The downbeat, where the pauses hold most of the channel weight (a dance of
@@ -92,6 +93,7 @@ class GridParams:
 
     - ``prior_bpm``: plausible tempo range (BPM); every section's tempo lies inside it.
     - ``tempo_step``: relative spacing of the tempo grid (0.0025 = 0.25 %).
+    - ``refine_span``: a section's tempo is refined within this share of its grid peak.
     - ``tempo_weights``: weight of bar harmonics k = 1 … len in the tempo score.
     - ``anchor_harmonics``: harmonics whose comb places the beats (the stronger one decides).
     - ``clarity_power``: exponent of a channel's clarity in its weight.
@@ -105,6 +107,7 @@ class GridParams:
 
     prior_bpm: tuple[float, float] = DEFAULT_PRIOR_BPM
     tempo_step: float = 0.0025
+    refine_span: float = 0.0075
     tempo_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     anchor_harmonics: tuple[int, ...] = (2, 4)
     clarity_power: float = 2.0
@@ -376,14 +379,19 @@ def refine_tempo(
     params: GridParams,
     channels: np.ndarray,
 ) -> float:
-    """Tempo (BPM) of the tempo-score peak within ``tempo · (1 ± tempo_step)``, sub-grid.
+    """Tempo (BPM) within ``tempo · (1 ± refine_span)`` where the anchor harmonics are most
+    coherent over the section, sub-grid.
 
-    ``signals``: the section's ``(L, C)`` frames, the first being frame ``start``. 51 tempi
-    across the interval, then a parabola through the best and its neighbours.
+    ``signals``: the section's ``(L, C)`` frames, the first being frame ``start``. The score
+    is ``Σ_{k ∈ anchor} Σ_c v_c |X_kc|``: at that tempo the step cycle that places the beats
+    stays in phase over the whole section. 51 tempi across the interval, then a parabola
+    through the best and its neighbours.
     """
-    tempi = tempo * (1.0 + np.linspace(-params.tempo_step, params.tempo_step, 51))
-    weights = np.asarray(params.tempo_weights, dtype=float)
-    score = _tempo_score(_coefficients(signals, fps, start, tempi, len(weights)), weights, channels)
+    tempi = tempo * (1.0 + np.linspace(-params.refine_span, params.refine_span, 51))
+    coef = _coefficients(signals, fps, start, tempi, max(params.anchor_harmonics))
+    score = np.einsum(
+        "gkc,c->g", np.abs(coef[:, [k - 1 for k in params.anchor_harmonics]]), channels
+    )
     g = int(np.argmax(score))
     if 0 < g < len(tempi) - 1:
         a, b, c = score[g - 1 : g + 2]

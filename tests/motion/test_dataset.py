@@ -242,7 +242,7 @@ def test_salsa_at_its_header_fps_gets_a_visible_warning(salsa_dir, tmp_path):
 
 def test_salsa_partners_are_compared_and_each_take_is_gridded_alone(salsa_dir, tmp_path):
     src = tmp_path / "src"
-    for take in ("60_03", "61_03", "60_15", "61_15"):
+    for take in ("60_13", "61_13", "60_15", "61_15"):
         _link(salsa_dir / f"{take}_scaled.bvh", src)
     manifest = load_manifest(MANIFESTS / "cmu-salsa.yaml")
     store = _store(tmp_path)
@@ -250,28 +250,28 @@ def test_salsa_partners_are_compared_and_each_take_is_gridded_alone(salsa_dir, t
     rows = {tuple(p["pair"]): p for p in report.partners}
     assert len(rows) == 14  # every declared pair is listed ...
     assert rows[("60_01", "61_01")]["missing"] == ["60_01", "61_01"]  # ... absent ones as such
-    for pair in (("60_03", "61_03"), ("60_15", "61_15")):
+    for pair in (("60_13", "61_13"), ("60_15", "61_15")):
         row = rows[pair]
         assert row["agree"] and row["tempo_diff_pct"] < 1.0 and row["median_offset_ms"] < 40.0
         assert row["downbeat_agreement"] >= 0.8
-    assert "partners 60_03/61_03: tempo" in report.table()
+    assert "partners 60_13/61_13: tempo" in report.table()
     ds = load_dataset(store, "salsa-pairs")
     assert ds.meta["partners"] == report.partners
-    clip = ds.clip("60_03")
+    clip = ds.clip("60_13")
     assert clip.beat_source == "kinematic" and len(clip.sections) == 1
     assert 160.0 < clip.tempo_bpm < 170.0 and clip.tempo_confidence > 0.5
     # sub-frame, even beats within the section; bars are 4 beats and the next downbeat
-    beats = ds.beats("60_03")
+    beats = ds.beats("60_13")
     assert np.ptp(np.diff(beats)) < 1e-9 and (np.diff(beats)[0] * clip.fps) % 1.0 > 1e-3
-    for bar in (b for b in ds.bars if b.clip_id == "60_03"):
+    for bar in (b for b in ds.bars if b.clip_id == "60_13"):
         assert np.max(tempo_mod.nearest_distance(bar.beat_times, beats)) < 1e-6
         assert bar.start_frame == round(bar.start_s * clip.fps)
 
     # The same take imported alone gets the same grid: nothing is shared between takes.
     alone = tmp_path / "alone"
-    _link(salsa_dir / "60_03_scaled.bvh", alone)
+    _link(salsa_dir / "60_13_scaled.bvh", alone)
     import_dataset(alone, "salsa-alone", store, manifest)
-    np.testing.assert_array_equal(load_dataset(store, "salsa-alone").beats("60_03"), beats)
+    np.testing.assert_array_equal(load_dataset(store, "salsa-alone").beats("60_13"), beats)
 
 
 def test_old_format_store_fails_with_a_clear_message(demo_dir, tmp_path):
