@@ -107,21 +107,10 @@ _COMMON_FPS = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 100.0, 120.0, 240.0)
 _FPS_WARNING_SHARE = 0.3
 #: Canonical joints of the grid's step evidence (``tempo.step_signals``): trunk and legs, and
 #: the four foot points. The arms are left out (partners hold hands; see ``tempo``).
-_STEP_BODY = (
-    "hips",
-    "chest",
-    "neck",
-    "head",
-    "left_hip",
-    "left_knee",
-    "left_ankle",
-    "left_toe",
-    "right_hip",
-    "right_knee",
-    "right_ankle",
-    "right_toe",
+STEP_BODY_JOINTS = tuple(
+    j for j in MAIN_JOINTS if j.rsplit("_", 1)[-1] not in ("shoulder", "elbow", "wrist")
 )
-_STEP_FEET = ("left_ankle", "left_toe", "right_ankle", "right_toe")
+STEP_FOOT_JOINTS = ("left_ankle", "left_toe", "right_ankle", "right_toe")
 
 ProgressFn = Callable[[int, int, str], None]
 #: dataset.json keys the version hash covers (with the clip arrays).
@@ -889,8 +878,8 @@ def _import_clip(
     if duration >= 2.0:
         index = {k: i for i, k in enumerate(main_joints)}
         signals = tempo_mod.step_signals(
-            main[:, [index[k] for k in _STEP_BODY]],
-            main[:, [index[k] for k in _STEP_FEET]],
+            main[:, [index[k] for k in STEP_BODY_JOINTS]],
+            main[:, [index[k] for k in STEP_FOOT_JOINTS]],
             kb,
             fps,
         )

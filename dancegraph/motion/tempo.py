@@ -18,27 +18,27 @@ following it. The steps, over one :class:`GridParams`:
    on the take's time axis, accumulated: the coherent spectrum of any run of blocks is the
    difference of two cumulative sums.
 3. ``channel_weights``: each channel counts by its clarity over the whole take (spectral
-   peak over median, squared, per unit of median), so the channels that repeat clearly decide:
-   the feet in salsa, the pauses in the generated demo library.
+   peak over median, squared, per unit of median), so the channels that repeat clearly
+   decide: the steps in a stepping dance, the pauses in a dance of held accents.
 4. ``tempo_sections``: dynamic programming over block runs splits the take where the tempo
    changes. A section scores the prominence (peak − median) of its harmonic-sum spectrum
-   ``Σ_k w_k Σ_c v_c |X_ck(T)|``; a split must add ``split_gain`` of the one-section score and
-   sections last ``min_section_s`` at least.
+   ``Σ_k w_k Σ_c v_c |X_ck(T)|``; a split must add ``split_gain`` of the one-section score,
+   every section lasts ``min_section_s``, is steady itself and differs from its neighbour by
+   ``min_tempo_change`` in tempo.
 5. ``refine_tempo`` and ``section_phase``, per section: the tempo refined within
-   ``refine_span`` of the peak to where the anchor harmonics are most coherent (the beats'
-   own step cycle stays in phase over the section), to 1/50 of the span and a parabola; the beats where the folded activity (speeds and lift up,
-   pauses down, each channel by its weight) is lowest at the stronger of the anchor harmonics
-   (2: the two-beat step cycle, 4: the beat), i.e. pauses on the beat, the convention of
-   kinematic beats. The downbeat, where the pauses hold most of the channel weight (a dance of
-   held accents, like the generated demo library): the beat the kinematic beats hit most often
-   (every common rhythm signature has its downbeat slot set; when two tie within
-   ``downbeat_margin`` of the range, the first in the section, which starts on a bar).
-   Where the steps lead (a stepping dance, like salsa): the beat at the low point of the
-   feet's bar cycle (their first bar harmonic), the one bar-level cue that two salsa partners
-   share (the pauses and the trunk's bar cycle differ between leader and follower).
-6. ``assemble``: the sections' even beats in one list (a beat closer than half a period to the
-   previous section's last is dropped), and bars wherever a downbeat has three beats and the
-   next downbeat after it.
+   ``refine_span`` of the peak to where the anchor harmonic is most coherent (the step cycle
+   that places the beats stays in phase over the section). The beats sit where the folded
+   activity (speeds and lift up, pauses down, each channel by its weight) is lowest at the
+   stronger anchor harmonic (2: the two-beat step cycle, 4: the beat), i.e. pauses on the
+   beat, the convention of kinematic beats. The downbeat, where the pauses hold most of the
+   channel weight: the beat the kinematic beats hit most often (every common rhythm signature
+   has its downbeat slot set; of two that tie within ``downbeat_margin`` of the range, the
+   first in the section, which starts on a bar). Where the steps lead: the beat at the low
+   point of the feet's bar cycle (their first bar harmonic), the bar-level cue two partners of
+   a couple dance share (their pauses and trunk differ: docs/mocap-beats.md).
+6. ``estimate_grid`` assembles the sections' even beats in one list (a beat closer than half a
+   period to the previous section's last is dropped) and bars wherever a downbeat has three
+   beats and the next downbeat after it.
 
 A section's confidence is its spectral prominence ratio (peak − median over median) mapped
 from ``CONFIDENCE_RATIO`` onto 0..1; the take's is the duration-weighted mean, and below
@@ -72,8 +72,8 @@ FEET_CHANNEL = 1
 #: The kinematic beats place the downbeat when the pause channel holds at least this share of
 #: the channel weights; otherwise the feet's bar cycle does.
 PAUSE_SHARE = 0.5
-#: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (random
-#: walks score 0.5-1.2, i.e. below ``STEADY_MIN_CONFIDENCE``; the salsa takes 0.5-2.9).
+#: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (set so
+#: that random walks stay below ``STEADY_MIN_CONFIDENCE``: docs/mocap-beats.md).
 CONFIDENCE_RATIO: tuple[float, float] = (0.8, 2.3)
 #: Below this confidence a take has no steady beat.
 STEADY_MIN_CONFIDENCE = 0.3
@@ -89,7 +89,8 @@ PLAUSIBLE_MAX_BPM = 200.0
 
 @dataclass(frozen=True)
 class GridParams:
-    """Parameters of ``estimate_grid`` (chosen on the CMU salsa partner takes and the demo).
+    """Parameters of ``estimate_grid`` (chosen on partner takes and generated dances:
+    docs/mocap-beats.md).
 
     - ``prior_bpm``: plausible tempo range (BPM); every section's tempo lies inside it.
     - ``tempo_step``: relative spacing of the tempo grid (0.0025 = 0.25 %).
@@ -161,8 +162,7 @@ class BeatGrid:
     - ``downbeats``: ``(N,)`` bool, True where a bar starts.
     - ``sections``: the stretches of steady tempo, in time order.
     - ``tempo_bpm``: the tempo of the longest section; ``confidence`` 0..1 (duration-weighted
-      over sections); ``motion_tempo_bpm``: the prior-free check (NaN when not measured);
-      ``flags``: ``no_steady_beat``, ``tempo_outside_prior``, ``tempo_changes``.
+      over sections); ``flags``: ``no_steady_beat``, ``tempo_changes``.
     """
 
     beats: np.ndarray
@@ -170,7 +170,6 @@ class BeatGrid:
     sections: list[Section]
     tempo_bpm: float
     confidence: float
-    motion_tempo_bpm: float = float("nan")
     flags: list[str] = field(default_factory=list)
 
     @property
@@ -305,16 +304,19 @@ def _prominence(score: np.ndarray) -> tuple[int, float, float]:
 
 def tempo_sections(
     spectra: np.ndarray,
+    tempi: np.ndarray,
     weights: np.ndarray,
     channels: np.ndarray,
     params: GridParams,
 ) -> list[tuple[int, int]]:
     """Block ranges ``[(i, j), ...]`` of steady tempo covering all blocks, in order.
 
-    ``spectra``: ``bar_spectra`` output. Dynamic programming over block boundaries: a
+    ``spectra``: ``bar_spectra`` output on the tempo grid ``tempi``; ``weights``,
+    ``channels``: harmonic and channel weights. Dynamic programming over block boundaries: a
     section scores the prominence of its tempo score; ``s`` sections must beat one section by
-    ``split_gain · (s − 1)`` of the one-section score; sections last ``min_section_s`` at
-    least.
+    ``split_gain · (s − 1)`` of the one-section score and last ``min_section_s`` each. The
+    best such split whose sections are all steady and whose neighbours' tempi differ by
+    ``min_tempo_change`` wins; else one section.
     """
     n_blocks = spectra.shape[0] - 1
     min_len = max(1, int(np.ceil(params.min_section_s / params.block_s)))
@@ -339,7 +341,6 @@ def tempo_sections(
                 if v > best[s, j]:
                     best[s, j], back[s, j] = v, i
     totals = np.array([best[s, n_blocks] - penalty * (s - 1) for s in range(1, n_sec + 1)])
-    tempi = tempo_grid(params.prior_bpm, params.tempo_step)
     for s in 1 + np.argsort(-totals, kind="stable"):
         if s == 1 or totals[s - 1] < totals[0]:
             break
@@ -488,8 +489,8 @@ def estimate_grid(
     """The beat and bar grid of a take from its ``step_signals`` ``(F, C)`` at ``fps``.
 
     ``tempo_bpm``: a known tempo (one section at that tempo; phase and downbeat estimated).
-    Otherwise the pipeline of the module docstring. The motion tempo is not measured here
-    (``motion_tempo_bpm`` NaN). Raises ``ValueError`` for less than two seconds of frames or
+    Otherwise the pipeline of the module docstring. The frame-rate check is separate
+    (``motion_tempo_bpm``). Raises ``ValueError`` for less than two seconds of frames or
     a non-positive tempo.
     """
     params = params or GridParams()
@@ -505,7 +506,7 @@ def estimate_grid(
     spectra = bar_spectra(signals, fps, tempi, block)
     channels = channel_weights(spectra[-1], weights, params.clarity_power)
     if tempo_bpm is None:
-        spans = tempo_sections(spectra, weights, channels, params)
+        spans = tempo_sections(spectra, tempi, weights, channels, params)
     else:
         spans = [(0, spectra.shape[0] - 1)]
 

@@ -8,6 +8,7 @@ import pytest
 
 from dancegraph.motion import tempo
 from dancegraph.motion.bvh import read_bvh
+from dancegraph.motion.dataset import STEP_BODY_JOINTS, STEP_FOOT_JOINTS
 from dancegraph.motion.features import MAIN_JOINTS, kinematic_beats
 from dancegraph.motion.fk import canonical_positions, forward_kinematics
 from dancegraph.rhythm import signatures as sig
@@ -149,12 +150,6 @@ def test_grid_from_tempo_and_grid_fit():
     assert tempo.grid_fit(off_grid, bars) == 0.0
 
 
-_STEP_BODY = [
-    j for j in MAIN_JOINTS if "shoulder" not in j and "elbow" not in j and "wrist" not in j
-]
-_STEP_FEET = ["left_ankle", "left_toe", "right_ankle", "right_toe"]
-
-
 def _salsa(path, fps):
     motion = read_bvh(path, fps=fps)
     pos, world = forward_kinematics(motion)
@@ -163,8 +158,8 @@ def _salsa(path, fps):
     ix = {k: sk.index(sk.canonical[k]) for k in ("hips", "left_ankle", "right_ankle")}
     ix |= {k: sk.index(sk.canonical[k]) for k in ("left_wrist", "right_wrist")}
     steps = tempo.step_signals(
-        canonical_positions(sk, pos, world, _STEP_BODY),
-        canonical_positions(sk, pos, world, _STEP_FEET),
+        canonical_positions(sk, pos, world, STEP_BODY_JOINTS),
+        canonical_positions(sk, pos, world, STEP_FOOT_JOINTS),
         kinematic_beats(main, fps),
         fps,
     )
