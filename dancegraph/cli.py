@@ -116,7 +116,7 @@ def _add_analyze(sub) -> None:
 
 
 def _add_dataset(sub) -> None:
-    """``dataset import DIR --name NAME [--manifest FILE]`` and ``dataset list``."""
+    """``dataset import DIR --name NAME [--manifest FILE]``, ``dataset list``, ``dataset show``."""
     p = sub.add_parser("dataset", help="motion datasets in the object store")
     ds_sub = p.add_subparsers(dest="dataset_command", required=True)
 
@@ -164,6 +164,34 @@ def _add_dataset(sub) -> None:
         return 0
 
     ls.set_defaults(func=_list)
+
+    show = ds_sub.add_parser("show", help="a dataset's beat grids: tempo, beats and bars per clip")
+    show.add_argument("name", help="dataset name")
+    show.add_argument(
+        "--store", default=None, help="object store root (default: DANCEGRAPH_HOME's)"
+    )
+    show.add_argument(
+        "--json", action="store_true", help="print every beat and bar as JSON (default: a table)"
+    )
+
+    def _show(args) -> int:
+        from dancegraph.motion.dataset import grid_report, load_dataset
+
+        report = grid_report(load_dataset(_store(args), args.name))
+        if args.json:
+            print_json(report)
+            return 0
+        print(f"dataset {report['name']}  version {report['version'][:12]}")
+        for c in report["clips"]:
+            tempi = "/".join(f"{s['tempo_bpm']:.2f}" for s in c["sections"]) or c["tempo_bpm"]
+            print(
+                f"{c['id']:<14}{c['fps']:>6.0f} fps  tempo {tempi}  confidence {c['confidence']}"
+                f"  {len(c['beats'])} beats  {len(c['bars'])} bars  {c['beat_source']}"
+                f"  {','.join(c['flags'])}"
+            )
+        return 0
+
+    show.set_defaults(func=_show)
 
     bld = ds_sub.add_parser("build", help="build (a new version of) the dataset's motion graph")
     bld.add_argument("name", help="dataset name")

@@ -38,6 +38,8 @@ do not pass silently::
     steady_beat: false               # the clips have no steady beat: bars from tempo_bpm,
                                      # every clip flagged no_steady_beat
     flags: [no_music]                # flags given to every clip
+    partners: [["60_01", "61_01"]]   # takes danced together to the same music: the report
+                                     # lists how well each pair's grids agree
     clips:                           # per clip (key: clip id), all optional
       "60_01":
         file: 60_01_scaled.bvh       # default: <id><strip_suffix>.bvh or the matching stem
@@ -57,8 +59,13 @@ do not pass silently::
         flags: [walk]                # extra flags for this clip
 
 Beat sources, in order of precedence: ``annotation`` (beats/bars in the manifest),
-``manifest_tempo`` (a fixed tempo, e.g. for takes without a steady beat), ``kinematic`` (the
-estimate of ``dancegraph.motion.tempo``).
+``manifest_tempo`` (a fixed tempo, e.g. for takes without a steady beat; its phase and
+downbeat from the motion unless ``first_downbeat_s`` is given), ``kinematic`` (the grid of
+``dancegraph.motion.tempo.estimate_grid``: tempo per section, sub-frame beats). Each take is
+gridded from its own motion only, so a take imported alone gets the same grid.
+
+Stored format 2 (format 1 had whole-frame kinematic grids and no sections): a store written
+by an older version fails to load with ``dataset_format_old``; import it again.
 """
 
 from __future__ import annotations
@@ -90,7 +97,7 @@ from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.rhythm import signatures as sig
 from dancegraph.store import ObjectStore
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 MANIFEST_NAMES = ("manifest.yaml", "manifest.yml", "manifest.json")
 _SAFE_ID = re.compile(r"[^A-Za-z0-9._-]+")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
@@ -98,6 +105,12 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _COMMON_FPS = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 100.0, 120.0, 240.0)
 #: Share of the estimated clips whose motion tempo leaves the prior that raises an fps warning.
 _FPS_WARNING_SHARE = 0.3
+#: Canonical joints of the grid's step evidence (``tempo.step_signals``): trunk and legs, and
+#: the four foot points. The arms are left out (partners hold hands; see ``tempo``).
+STEP_BODY_JOINTS = tuple(
+    j for j in MAIN_JOINTS if j.rsplit("_", 1)[-1] not in ("shoulder", "elbow", "wrist")
+)
+STEP_FOOT_JOINTS = ("left_ankle", "left_toe", "right_ankle", "right_toe")
 
 ProgressFn = Callable[[int, int, str], None]
 #: dataset.json keys the version hash covers (with the clip arrays).
@@ -191,9 +204,18 @@ class Manifest(_Strict):
     first_downbeat_s: float | None = Field(default=None, ge=0)
     steady_beat: bool = True
     flags: list[str] = Field(default_factory=list)
+    partners: list[list[str]] = Field(default_factory=list)
     clips: dict[str, ClipManifest] = Field(default_factory=dict)
 
     _range = field_validator("tempo_prior_bpm")(_check_range)
+
+    @field_validator("partners")
+    @classmethod
+    def _pairs(cls, v: list[list[str]]) -> list[list[str]]:
+        for pair in v:
+            if len(pair) != 2 or pair[0] == pair[1]:
+                raise ValueError("each partner entry is a pair of two different clip ids")
+        return v
 
 
 def load_manifest(path: str | Path) -> dict:
@@ -246,8 +268,12 @@ class ClipInfo:
     """One imported take.
 
     ``beat_source``: ``annotation`` | ``kinematic`` | ``manifest_tempo``. ``tempo_bpm`` is the
-    tempo the bars were cut at; ``motion_tempo_bpm`` the prior-free kinematic estimate (NaN
-    where not estimated). ``header_fps`` is the file's own rate, ``fps`` the one used.
+    tempo the bars were cut at (of the longest section where the tempo changes);
+    ``motion_tempo_bpm`` the prior-free frame-rate check (NaN where not measured);
+    ``sections``: the stretches of steady tempo of a grid read from the motion
+    (``tempo.Section.to_dict``: start_s, end_s, tempo_bpm, confidence, downbeat_clarity),
+    empty for annotated and fixed grids. ``header_fps`` is the file's own rate, ``fps`` the
+    one used.
     """
 
     id: str
@@ -264,8 +290,8 @@ class ClipInfo:
     duration_s: float = 0.0
     motion_tempo_bpm: float = float("nan")
     n_bars: int = 0
-    bar_phase: int = 0
     grid_fit: float = 0.0
+    sections: list[dict] = field(default_factory=list)
     audio: str | None = None
 
     def to_dict(self) -> dict:
@@ -322,7 +348,8 @@ class BarInfo:
 
 @dataclass
 class ImportReport:
-    """What an import did: per-clip rows, failures (file, code, message), warnings."""
+    """What an import did: per-clip rows, failures (file, code, message), warnings, and the
+    agreement of the manifest's partner takes (``partner_rows``)."""
 
     name: str
     version: str
@@ -333,6 +360,7 @@ class ImportReport:
     n_bars: int
     signature_counts: dict[str, int]
     elapsed_s: float
+    partners: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
@@ -362,6 +390,7 @@ class ImportReport:
             "excluded": self.excluded,
             "warnings": self.warnings,
             "signature_counts": self.signature_counts,
+            "partners": self.partners,
         }
 
     def table(self) -> str:
@@ -382,9 +411,52 @@ class ImportReport:
             lines.append(f"FAILED {f['file']}: [{f['code']}] {f['error']}")
         for e in self.excluded:
             lines.append(f"excluded {e['file']}: {e.get('reason') or 'manifest'}")
+        for p in self.partners:
+            pair = "/".join(p["pair"])
+            if p.get("missing"):
+                lines.append(f"partners {pair}: not compared ({', '.join(p['missing'])} absent)")
+                continue
+            lines.append(
+                f"partners {pair}: tempo {_fmt(p['tempo_bpm'][0])}/{_fmt(p['tempo_bpm'][1])} BPM"
+                f" ({_fmt(p['tempo_diff_pct'], 2)} %), median beat offset"
+                f" {_fmt(p['median_offset_ms'], 0)} ms, downbeats agree"
+                f" {_fmt(100 * p['downbeat_agreement'], 0)} % (else {p['downbeat_shift_beats']}"
+                f" beats apart): {'agree' if p['agree'] else 'DISAGREE'}"
+            )
         for w in self.warnings:
             lines.append(f"WARNING {w}")
         return "\n".join(lines)
+
+
+#: Partner takes agree when their tempi are this close (%) ...
+PARTNER_TEMPO_PCT = 1.0
+#: ... and the median offset between their beats is at most this (ms).
+PARTNER_OFFSET_MS = 40.0
+
+
+def partner_rows(pairs: list[list[str]], grids: dict[str, tuple]) -> list[dict]:
+    """Agreement rows of partner ``pairs`` from ``grids``: clip id → (beats, bar starts, tempo).
+
+    Each row: ``pair``, ``tempo_bpm`` (both), ``tempo.partner_agreement``'s numbers and
+    ``agree`` (tempo within ``PARTNER_TEMPO_PCT`` and median offset within
+    ``PARTNER_OFFSET_MS``); a pair with a clip absent from ``grids`` gets ``missing``.
+    """
+    rows: list[dict[str, object]] = []
+    for a, b in pairs:
+        missing = [c for c in (a, b) if c not in grids]
+        if missing:
+            rows.append({"pair": [a, b], "missing": missing})
+            continue
+        (ba, da, ta), (bb, db, tb) = grids[a], grids[b]
+        row = tempo_mod.partner_agreement(ba, da, ta, bb, db, tb)
+        row = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}
+        agree = row["tempo_diff_pct"] <= PARTNER_TEMPO_PCT and (
+            row["median_offset_ms"] <= PARTNER_OFFSET_MS
+        )
+        rows.append(
+            {"pair": [a, b], "tempo_bpm": [round(ta, 3), round(tb, 3)], **row, "agree": bool(agree)}
+        )
+    return rows
 
 
 def _round(x: float, n: int) -> float | None:
@@ -648,6 +720,7 @@ def import_dataset(
     warnings: list[str] = []
     digests: list[str] = []
     seen: set[str] = set()
+    grids: dict[str, tuple] = {}
 
     for done, path in enumerate(files, start=1):
         cid = _clip_id(path.stem, m.strip_suffix)
@@ -685,6 +758,7 @@ def import_dataset(
             seen.add(cid)
             rows.append(row)
             bars.extend(clip_bars)
+            grids[cid] = (arrays["beats"], np.array([b.start_s for b in clip_bars]), row.tempo_bpm)
         except DanceGraphError as exc:
             failed.append({"file": path.name, "code": exc.code, "error": _local(exc.message, src)})
         except (ValueError, OSError, MemoryError) as exc:
@@ -730,6 +804,7 @@ def import_dataset(
         "excluded": excluded,
         "warnings": warnings,
         "signature_counts": signature_counts,
+        "partners": partner_rows(m.partners, grids),
     }
     # The version hashes what a graph is built from, not how the import went.
     content = {k: doc[k] for k in _CONTENT_KEYS}
@@ -754,6 +829,7 @@ def import_dataset(
         n_bars=len(bars),
         signature_counts=signature_counts,
         elapsed_s=time.perf_counter() - t0,
+        partners=doc["partners"],
     )
 
 
@@ -790,10 +866,13 @@ def _import_clip(
     flags = list(dict.fromkeys([*m.flags, *cm.flags]))
     style = cm.style or m.style or "unknown"
     prior = cm.tempo_prior_bpm or m.tempo_prior_bpm
+    params = tempo_mod.GridParams(
+        prior_bpm=(float(prior[0]), float(prior[1])) if prior else tempo_mod.DEFAULT_PRIOR_BPM
+    )
     tempo_bpm = cm.tempo_bpm or m.tempo_bpm
     motion_tempo = float("nan")
     confidence = float("nan")
-    phase = 0
+    sections: list[dict] = []
     try:
         ann = _annotation_bars(cm, fps)
     except ValueError as exc:
@@ -801,13 +880,21 @@ def _import_clip(
             f"{path.name}: {exc}", code="manifest_invalid", field=f"clips.{cid}"
         ) from None
 
-    # Always run the kinematic estimate when the clip is long enough: its motion tempo is what
-    # lets a user see a wrong frame rate, whatever the bars are cut from.
-    est = None
+    # The grid's evidence and the frame-rate check whenever the clip is long enough: the
+    # motion tempo is what lets a user see a wrong frame rate, whatever the bars are cut from.
+    signals = None
     if duration >= 2.0:
-        signals = tempo_mod.periodicity_signals(positions, fps, root=root, feet=feet, hands=hands)
-        est = tempo_mod.estimate_tempo(signals, fps, _bpm_range(prior), kb)
-        motion_tempo = est.motion_tempo_bpm
+        index = {k: i for i, k in enumerate(main_joints)}
+        signals = tempo_mod.step_signals(
+            main[:, [index[k] for k in STEP_BODY_JOINTS]],
+            main[:, [index[k] for k in STEP_FOOT_JOINTS]],
+            kb,
+            fps,
+        )
+        motion_tempo = tempo_mod.motion_tempo_bpm(
+            tempo_mod.periodicity_signals(positions, fps, root=root, feet=feet, hands=hands), fps
+        )
+    too_fast = tempo_mod.outside_prior(motion_tempo, params.prior_bpm)
 
     if ann is not None:
         source = "annotation"
@@ -825,43 +912,36 @@ def _import_clip(
                 field="tempo_bpm",
             )
         first = cm.first_downbeat_s if cm.first_downbeat_s is not None else m.first_downbeat_s
-        if m.steady_beat and first is None and len(kb) >= 4:
-            # Known tempo, unknown grid: place the beats and the downbeat on the kinematics.
-            period = 60.0 / tempo_bpm
-            beats = tempo_mod.track_beats(tempo_mod.beat_envelope(kb, n, fps), fps, period)
-            phase, _clarity = tempo_mod.bar_phase(beats, kb, period)
+        if m.steady_beat and first is None and signals is not None:
+            # Known tempo, unknown grid: phase and downbeat from the motion.
+            grid = tempo_mod.estimate_grid(signals, fps, params, tempo_bpm=tempo_bpm)
+            beats, bar_beats = grid.beats, grid.bars
+            sections = [sec.to_dict() for sec in grid.sections]
         else:
             beats = tempo_mod.grid_from_tempo(duration, tempo_bpm, first or 0.0)
-        bar_beats = tempo_mod.bars_from_beats(beats, phase)
+            bar_beats = tempo_mod.bars_from_beats(beats)
         confidence = 1.0 if m.steady_beat else 0.0
         if not m.steady_beat:
             flags.append("no_steady_beat")
+        elif too_fast:
+            # A fixed tempo on a steady dance is only as right as the frame rate.
+            flags.append("tempo_outside_prior")
     else:
         source = "kinematic"
-        if est is None:
+        if signals is None:
             raise DanceGraphError(
                 f"{path.name}: {duration:.2f} s is too short to estimate a tempo (2 s at least); "
                 "give 'tempo_bpm' or beats in the manifest",
                 code="clip_too_short",
                 field=pname,
             )
-        tempo_bpm = est.tempo_bpm
-        confidence = est.confidence
-        flags.extend(est.flags)
-        env = tempo_mod.beat_envelope(kb, n, fps)
-        beats = tempo_mod.track_beats(env, fps, est.beat_period_s)
-        phase, _clarity = tempo_mod.bar_phase(beats, kb, est.beat_period_s)
-        bar_beats = tempo_mod.bars_from_beats(beats, phase)
-    # A fixed manifest tempo on a steady dance is only as right as the frame rate: pass the
-    # estimate's warning on. Annotations are authoritative and no-steady-beat takes have no
-    # motion tempo worth trusting.
-    if (
-        est is not None
-        and source == "manifest_tempo"
-        and m.steady_beat
-        and "tempo_outside_prior" in est.flags
-    ):
-        flags.append("tempo_outside_prior")
+        grid = tempo_mod.estimate_grid(signals, fps, params)
+        beats, bar_beats = grid.beats, grid.bars
+        tempo_bpm, confidence = grid.tempo_bpm, grid.confidence
+        sections = [sec.to_dict() for sec in grid.sections]
+        flags.extend(grid.flags)
+        if too_fast:
+            flags.append("tempo_outside_prior")
 
     # Keep the bars that lie inside the clip (an annotation may run past its end).
     last_t = (n - 1) / fps
@@ -919,8 +999,8 @@ def _import_clip(
         duration_s=float(duration),
         motion_tempo_bpm=float(motion_tempo),
         n_bars=len(clip_bars),
-        bar_phase=int(phase),
         grid_fit=float(fit),
+        sections=sections,
     )
     arrays = {
         "root_positions": motion.root_positions.astype(np.float32),
@@ -945,6 +1025,13 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
         raise NotFoundError(f"no dataset {name!r}", code="unknown_dataset", field="dataset")
     try:
         doc = json.loads(store.get_bytes(key))
+        if isinstance(doc.get("format"), int) and doc["format"] < FORMAT_VERSION:
+            raise DanceGraphError(
+                f"dataset {name!r} was imported by an older DanceGraph (format {doc['format']},"
+                f" this one reads {FORMAT_VERSION}: sub-frame beat grids); import it again",
+                code="dataset_format_old",
+                field=key,
+            )
         if doc.get("format") != FORMAT_VERSION:
             raise ValueError(f"format {doc.get('format')!r}, expected {FORMAT_VERSION}")
         return Dataset(
@@ -970,6 +1057,7 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
                     "excluded",
                     "warnings",
                     "signature_counts",
+                    "partners",
                 )
             },
         )
@@ -977,6 +1065,38 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
         raise DanceGraphError(
             f"dataset {name!r}: {key} is unreadable ({exc})", code="dataset_corrupt", field=key
         ) from None
+
+
+def grid_report(ds: Dataset) -> dict:
+    """The beat grids of a stored dataset, as ``dataset show`` prints them.
+
+    Per clip: ``id``, ``fps``, ``tempo_bpm``, ``confidence``, ``beat_source``, ``flags``,
+    ``sections`` (steady-tempo stretches of an estimated grid), ``beats`` (s) and ``bars``
+    (``[start_s, end_s]`` each); then the import's partner agreement rows. Times rounded to
+    0.1 ms.
+    """
+    by_clip: dict[str, list[list[float]]] = {}
+    for b in ds.bars:
+        by_clip.setdefault(b.clip_id, []).append([round(b.start_s, 4), round(b.end_s, 4)])
+    return {
+        "name": ds.name,
+        "version": ds.version,
+        "clips": [
+            {
+                "id": c.id,
+                "fps": c.fps,
+                "tempo_bpm": _round(c.tempo_bpm, 3),
+                "confidence": _round(c.tempo_confidence, 3),
+                "beat_source": c.beat_source,
+                "flags": c.flags,
+                "sections": c.sections,
+                "beats": [round(float(t), 4) for t in ds.beats(c.id)],
+                "bars": by_clip.get(c.id, []),
+            }
+            for c in ds.clips
+        ],
+        "partners": ds.meta.get("partners") or [],
+    }
 
 
 def list_datasets(store: ObjectStore) -> list[dict]:

@@ -1,38 +1,50 @@
-"""Tempo, beat grid and bar grid of a dance clip from its kinematics.
+"""Beat grid and bar grid of a dance take from its own motion: ``estimate_grid``.
 
-A dance's beat is often not periodic at the beat level: salsa's basic step moves on beats
-1 2 3, 5 6 7 and pauses on 4 and 8, so the feet are periodic over a bar (4 beats) or two, not
-over a beat, and a generic beat tracker run on a kinematic envelope lands anywhere from 80 to
-157 BPM across the CMU salsa takes. The estimate here works at the *bar* level instead:
+A take without music has no beat to read; its grid is inferred from how the body repeats.
+Dance steps are periodic at the bar and half-bar level more than at the beat: in the CMU salsa
+takes the feet make one big step every two beats, so the strongest periodicity is at two
+beats, then one bar, while a speed minimum on every beat is rare. The grid is therefore fitted
+to the bar harmonics of a few step signals, coherently over whole sections of the take, which
+gives a sub-frame tempo and phase and averages a dancer's step-to-step jitter out instead of
+following it. The steps, over one :class:`GridParams`:
 
-1. ``periodicity_signals``: left/right-symmetric kinematic signals (pelvis height, summed foot
-   speed, summed hand speed relative to the pelvis, mean speed relative to the pelvis). Symmetric
-   sums repeat every bar; a single foot repeats only every two bars.
-2. ``mean_local_autocorrelation``: their autocorrelation in sliding windows, averaged (a dance
-   changes figures within a take; windows keep one figure's periodicity from washing out
-   another's).
-3. ``estimate_tempo``: candidate tempi are 4 beats per peak lag of that autocorrelation (bar
-   candidates) and 1 or 2 beats per peak lag of the kinematic-beat envelope's (pulse
-   candidates). A tempo scores its bar term ``(A(L) + A(2L)) / 2`` (a bar that repeats also
-   repeats two bars later, which rejects accidental short peaks) plus its pulse term, the
-   envelope's autocorrelation at one and two beats (a dance whose bars never repeat but whose
-   accents keep time, like the generated demo library, still has a tempo). The *tempo* is the
-   fastest candidate inside the prior whose bar + 0.5 × pulse score reaches 0.9 × the best
-   there. The *motion tempo* is 4 beats per the shortest
-   strong bar lag (bar term ≥ 0.8 × the best) over 0.5–4 s, with no prior and no pulse: it
-   measures how fast the body's bars actually repeat, so a clip read at twice its real frame
-   rate moves twice as fast, its motion tempo leaves the prior and the clip is flagged
-   ``tempo_outside_prior`` (CMU salsa read at its 120 fps header: about 330 BPM, 22 of 28 takes
-   flagged; at 60 fps, 1). The confidence is the bar's (or, if clearer, bar and pulse's)
-   autocorrelation *rise* above its trough over the half period before the peak, over
-   ``FULL_CONFIDENCE_SCORE``: a slowly wandering, aperiodic signal correlates highly at every
-   lag but rises nowhere. Below ``STEADY_MIN_CONFIDENCE``: ``no_steady_beat``.
-4. ``track_beats``: dynamic-programming beat tracking (Ellis 2007) on the kinematic-beat
-   envelope at the estimated period, which follows slow drift; ``bar_phase`` puts the downbeat
-   on the beat position hit by kinematic beats most often (every common rhythm signature has
-   its downbeat slot set).
-5. ``bar_signature_bits``: a bar's rhythm signature from the kinematic beats nearest each of its
-   8 half-beat slots.
+1. ``step_signals``: four standardised evidence channels: mean speed of the trunk and leg
+   joints, summed speed of the foot points (ankles, toes), summed foot lift, and the
+   kinematic-beat envelope (pauses of the whole body). The arms enter only through the
+   kinematic beats: partners of a couple dance hold hands, and arm speed itself would make two
+   partners' grids agree through the hands rather than through the music.
+2. ``bar_spectra``: for each tempo of a log-spaced grid over the prior, the Fourier sums of
+   every channel at the bar harmonics ``k · tempo / 240`` Hz (k = 1 … 8), per one-second block
+   on the take's time axis, accumulated: the coherent spectrum of any run of blocks is the
+   difference of two cumulative sums.
+3. ``channel_weights``: each channel counts by its clarity over the whole take (spectral
+   peak over median, squared, per unit of median), so the channels that repeat clearly
+   decide: the steps in a stepping dance, the pauses in a dance of held accents.
+4. ``tempo_sections``: dynamic programming over block runs splits the take where the tempo
+   changes. A section scores the prominence (peak − median) of its harmonic-sum spectrum
+   ``Σ_k w_k Σ_c v_c |X_ck(T)|``; a split must add ``split_gain`` of the one-section score,
+   every section lasts ``min_section_s``, is steady itself and differs from its neighbour by
+   ``min_tempo_change`` in tempo.
+5. ``refine_tempo`` and ``section_phase``, per section: the tempo refined within
+   ``refine_span`` of the peak to where the anchor harmonic is most coherent (the step cycle
+   that places the beats stays in phase over the section). The beats sit where the folded
+   activity (speeds and lift up, pauses down, each channel by its weight) is lowest at the
+   stronger anchor harmonic (2: the two-beat step cycle, 4: the beat), i.e. pauses on the
+   beat, the convention of kinematic beats. The downbeat, where the pauses hold most of the
+   channel weight: the beat the kinematic beats hit most often (every common rhythm signature
+   has its downbeat slot set; of two that tie within ``downbeat_margin`` of the range, the
+   first in the section, which starts on a bar). Where the steps lead: the beat at the low
+   point of the feet's bar cycle (their first bar harmonic), the bar-level cue two partners of
+   a couple dance share (their pauses and trunk differ: docs/mocap-beats.md).
+6. ``estimate_grid`` assembles the sections' even beats in one list (a beat closer than half a
+   period to the previous section's last is dropped) and bars wherever a downbeat has three
+   beats and the next downbeat after it.
+
+A section's confidence is its spectral prominence ratio (peak − median over median) mapped
+from ``CONFIDENCE_RATIO`` onto 0..1; the take's is the duration-weighted mean, and below
+``STEADY_MIN_CONFIDENCE`` the take is flagged ``no_steady_beat``. The *motion tempo* is a
+prior-free check of the frame rate (``motion_tempo_bpm``): a take read at twice its real frame
+rate moves twice as fast, leaves the prior and is flagged ``tempo_outside_prior``.
 
 Times are seconds, tempi beats per minute, frame rates frames per second.
 """
@@ -47,24 +59,557 @@ from scipy.signal import find_peaks
 
 from dancegraph.rhythm.signatures import N_SLOTS
 
-#: Tempo range assumed when neither the manifest nor the caller gives one (BPM).
-DEFAULT_PRIOR_BPM: tuple[float, float] = (80.0, 200.0)
+#: Tempo range assumed when neither the manifest nor the caller gives one (BPM): the common
+#: range of a dance's beat; faster dances (salsa, jive) declare theirs in the manifest.
+DEFAULT_PRIOR_BPM: tuple[float, float] = (70.0, 160.0)
+#: Bar harmonics whose Fourier sums are kept (k · tempo / 240 Hz).
+N_HARMONICS = 8
+#: Sign of each ``step_signals`` channel as activity: speeds and lift rise with motion, the
+#: kinematic-beat envelope rises at pauses.
+CHANNEL_SIGNS: tuple[float, ...] = (1.0, 1.0, 1.0, -1.0)
+#: Column of ``step_signals`` holding the summed foot speed.
+FEET_CHANNEL = 1
+#: The kinematic beats place the downbeat when the pause channel holds at least this share of
+#: the channel weights; otherwise the feet's bar cycle does.
+PAUSE_SHARE = 0.5
+#: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (set so
+#: that random walks stay below ``STEADY_MIN_CONFIDENCE``: docs/mocap-beats.md).
+CONFIDENCE_RATIO: tuple[float, float] = (0.8, 2.3)
+#: Below this confidence a take has no steady beat.
+STEADY_MIN_CONFIDENCE = 0.3
 #: Bar lags searched for the prior-free motion tempo (s): 4 beats at 480 … 60 BPM.
 FREE_BAR_RANGE_S: tuple[float, float] = (0.5, 4.0)
-#: Periodicity rise (windowed autocorrelation above its trough) that counts as full confidence.
-FULL_CONFIDENCE_SCORE = 0.25
-#: Below this confidence a clip has no steady beat.
-STEADY_MIN_CONFIDENCE = 0.3
-#: A shorter bar lag wins the free estimate when its score is at least this share of the best.
+#: A shorter bar lag wins the motion tempo when its score is at least this share of the best.
 SHORTEST_STRONG_RATIO = 0.8
-#: Weight of the pulse term against the bar term when choosing the tempo.
-PULSE_WEIGHT = 0.5
-#: Inside the prior, the fastest candidate scoring at least this share of the best wins.
-#: (Weight and share chosen on the CMU salsa partner takes, whose two dancers share one tempo,
-#: and on the generated demo library, whose tempi are known.)
-TEMPO_STRONG_RATIO = 0.9
-#: The motion tempo counts as outside the prior beyond this relative margin.
+#: The motion tempo counts as outside the prior beyond this relative margin ...
 PRIOR_MARGIN = 0.1
+#: ... over the prior's top or this tempo (BPM), whichever is higher.
+PLAUSIBLE_MAX_BPM = 200.0
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """Parameters of ``estimate_grid`` (chosen on partner takes and generated dances:
+    docs/mocap-beats.md).
+
+    - ``prior_bpm``: plausible tempo range (BPM); every section's tempo lies inside it.
+    - ``tempo_step``: relative spacing of the tempo grid (0.0025 = 0.25 %).
+    - ``refine_span``: a section's tempo is refined within this share of its grid peak.
+    - ``tempo_weights``: weight of bar harmonics k = 1 … len in the tempo score.
+    - ``anchor_harmonics``: harmonics whose comb places the beats (the stronger one decides).
+    - ``clarity_power``: exponent of a channel's clarity in its weight.
+    - ``downbeat_margin``: below this share of the folded range, two beats tie for downbeat.
+    - ``block_s``: block length of the sectioning (s).
+    - ``min_section_s``: shortest section (s); a take shorter than two is one section.
+    - ``split_gain``: each split must add this share of the one-section score.
+    - ``min_tempo_change``: neighbouring sections' tempi differ by this share at least.
+    - ``max_sections``: most sections per take.
+    """
+
+    prior_bpm: tuple[float, float] = DEFAULT_PRIOR_BPM
+    tempo_step: float = 0.0025
+    refine_span: float = 0.0075
+    tempo_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
+    anchor_harmonics: tuple[int, ...] = (2, 4)
+    clarity_power: float = 2.0
+    downbeat_margin: float = 0.25
+    block_s: float = 1.0
+    min_section_s: float = 10.0
+    split_gain: float = 0.6
+    min_tempo_change: float = 0.02
+    max_sections: int = 3
+
+    def __post_init__(self) -> None:
+        lo, hi = self.prior_bpm
+        if not 0 < lo < hi:
+            raise ValueError(f"tempo prior must be 0 < lo < hi, got {self.prior_bpm}")
+        if not 1 <= len(self.tempo_weights) <= N_HARMONICS:
+            raise ValueError(f"tempo_weights: 1 to {N_HARMONICS} harmonics")
+        if not self.anchor_harmonics or any(
+            not 1 <= k <= N_HARMONICS for k in self.anchor_harmonics
+        ):
+            raise ValueError(f"anchor_harmonics: harmonics 1 to {N_HARMONICS}")
+        if self.tempo_step <= 0 or self.block_s <= 0 or self.max_sections < 1:
+            raise ValueError("tempo_step and block_s must be positive, max_sections at least 1")
+
+
+@dataclass
+class Section:
+    """A stretch of steady tempo: ``[start_s, end_s)``, tempo (BPM), confidence 0..1, and the
+    downbeat's clarity 0..1 (0: the evidence could not tell two beats apart)."""
+
+    start_s: float
+    end_s: float
+    tempo_bpm: float
+    confidence: float
+    downbeat_clarity: float
+
+    def to_dict(self) -> dict:
+        return {
+            "start_s": round(self.start_s, 4),
+            "end_s": round(self.end_s, 4),
+            "tempo_bpm": round(self.tempo_bpm, 3),
+            "confidence": round(self.confidence, 3),
+            "downbeat_clarity": round(self.downbeat_clarity, 3),
+        }
+
+
+@dataclass
+class BeatGrid:
+    """A take's grid.
+
+    - ``beats``: ``(N,)`` beat times (s), increasing, sub-frame.
+    - ``downbeats``: ``(N,)`` bool, True where a bar starts.
+    - ``sections``: the stretches of steady tempo, in time order.
+    - ``tempo_bpm``: the tempo of the longest section; ``confidence`` 0..1 (duration-weighted
+      over sections); ``flags``: ``no_steady_beat``, ``tempo_changes``.
+    """
+
+    beats: np.ndarray
+    downbeats: np.ndarray
+    sections: list[Section]
+    tempo_bpm: float
+    confidence: float
+    flags: list[str] = field(default_factory=list)
+
+    @property
+    def bars(self) -> np.ndarray:
+        """``(B, 5)`` beat times of the complete bars (4 beats and the next downbeat)."""
+        return bars_at_downbeats(self.beats, self.downbeats)
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Evidence
+# --------------------------------------------------------------------------------------------
+
+
+def _standardise(x: np.ndarray, fps: float) -> np.ndarray:
+    """Clip at the 98th percentile (marker glitches), remove a 2 s trend, unit variance."""
+    top = np.percentile(x, 98)
+    x = np.minimum(x, top) if top > 0 else x
+    x = x - gaussian_filter1d(x, 2.0 * fps, mode="nearest")
+    return x / (x.std() + 1e-9)
+
+
+def event_envelope(times: np.ndarray, n_frames: int, fps: float, sigma_s: float = 0.03):
+    """``(F,)`` unit impulses at ``times`` (s; split linearly between the two nearest frames),
+    smoothed by a Gaussian of ``sigma_s``."""
+    env = np.zeros(n_frames)
+    t = np.asarray(times, dtype=float) * fps
+    t = t[(t >= 0) & (t <= n_frames - 1)]
+    i = np.floor(t).astype(int)
+    frac = t - i
+    np.add.at(env, i, 1.0 - frac)
+    np.add.at(env, np.minimum(i + 1, n_frames - 1), frac)
+    return gaussian_filter1d(env, max(0.5, sigma_s * fps), mode="constant")
+
+
+def step_signals(
+    body: np.ndarray, feet: np.ndarray, kinematic_beats: np.ndarray, fps: float
+) -> np.ndarray:
+    """``(F, 4)`` standardised step evidence of a take.
+
+    ``body``: ``(F, J, 3)`` world positions (m, Y up) of the trunk and leg joints; ``feet``:
+    ``(F, 4, 3)`` left ankle, left toe, right ankle, right toe; ``kinematic_beats``: ``(K,)`` s.
+    Columns: mean body joint speed, summed foot-point speed, summed foot lift (per foot the
+    lower of ankle and toe above its 5th height percentile), kinematic-beat envelope. Each is
+    smoothed (25 ms), clipped at its 98th percentile, detrended (2 s) and scaled to unit
+    variance. Raises ``ValueError`` for fewer than 3 frames.
+    """
+    body = np.asarray(body, dtype=float)
+    if body.shape[0] < 3:
+        raise ValueError("a take needs at least 3 frames")
+    sigma = max(1.0, 0.025 * fps)
+    body = gaussian_filter1d(body, sigma, axis=0, mode="nearest")
+    feet = gaussian_filter1d(np.asarray(feet, dtype=float), sigma, axis=0, mode="nearest")
+    speed = np.linalg.norm(np.gradient(body, axis=0), axis=-1).mean(axis=1) * fps
+    foot_speed = np.linalg.norm(np.gradient(feet, axis=0), axis=-1).sum(axis=1) * fps
+    height = feet[..., 1] - np.percentile(feet[..., 1], 5, axis=0)
+    lift = np.minimum(height[:, 0::2], height[:, 1::2]).sum(axis=1)
+    pauses = event_envelope(kinematic_beats, body.shape[0], fps)
+    return np.stack([_standardise(s, fps) for s in (speed, foot_speed, lift, pauses)], axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+# 2-3. Spectra and channel weights
+# --------------------------------------------------------------------------------------------
+
+
+def tempo_grid(prior_bpm: tuple[float, float], step: float) -> np.ndarray:
+    """Log-spaced tempi (BPM) from ``prior_bpm[0]`` to at least ``prior_bpm[1]`` at ``step``."""
+    lo, hi = prior_bpm
+    n = int(np.ceil(np.log(hi / lo) / np.log1p(step))) + 1
+    return lo * (1.0 + step) ** np.arange(n)
+
+
+def _coefficients(
+    signals: np.ndarray, fps: float, start: int, tempi: np.ndarray, n_harmonics: int = N_HARMONICS
+) -> np.ndarray:
+    """``(G, K, C)`` Fourier sums of ``signals (L, C)``, whose first frame is ``start``, at bar
+    harmonics 1 … ``n_harmonics`` of ``tempi (G,)`` on the take's time axis (t = frame / fps)."""
+    t = (start + np.arange(signals.shape[0])) / fps
+    freq = np.outer(tempi / 240.0, np.arange(1, n_harmonics + 1))  # (G, K) Hz
+    return np.exp(-2j * np.pi * freq[:, :, None] * t[None, None, :]) @ signals
+
+
+def bar_spectra(signals: np.ndarray, fps: float, tempi: np.ndarray, block: int) -> np.ndarray:
+    """``(B + 1, G, K, C)`` cumulative block Fourier sums of ``signals (F, C)``.
+
+    Entry ``b`` sums frames ``[0, b · block)`` (the last block zero-padded); the coherent sums
+    of blocks ``[i, j)`` are ``S[j] − S[i]``. One block's kernel serves all blocks, each turned
+    by the phase of its start time.
+    """
+    n, c = signals.shape
+    n_blocks = -(-n // block)
+    padded = np.zeros((n_blocks * block, c))
+    padded[:n] = signals
+    freq = np.outer(tempi / 240.0, np.arange(1, N_HARMONICS + 1))  # (G, K) Hz
+    kernel = np.exp(-2j * np.pi * freq[:, :, None] * (np.arange(block) / fps))  # (G, K, L)
+    sums = np.einsum("gkl,blc->bgkc", kernel, padded.reshape(n_blocks, block, c))
+    turn = np.exp(-2j * np.pi * freq[None] * (np.arange(n_blocks) * block / fps)[:, None, None])
+    out = np.zeros((n_blocks + 1, len(tempi), N_HARMONICS, c), complex)
+    np.cumsum(sums * turn[..., None], axis=0, out=out[1:])
+    return out
+
+
+def channel_weights(coef: np.ndarray, weights: np.ndarray, power: float) -> np.ndarray:
+    """``(C,)`` weights ``clarity^power / median`` of the channels of Fourier sums ``(G, K, C)``.
+
+    A channel's tempo score ``Σ_k w_k |X_kc|`` over the grid has a median (its noise level)
+    and a clarity ``(max − median) / median``; dividing by the median puts the channels on
+    one scale.
+    """
+    per = np.einsum("gkc,k->gc", np.abs(coef[:, : len(weights)]), weights)
+    med = np.maximum(np.median(per, axis=0), 1e-12)
+    clarity = (per.max(axis=0) - med) / med
+    return clarity**power / med
+
+
+def _tempo_score(coef: np.ndarray, weights: np.ndarray, channels: np.ndarray) -> np.ndarray:
+    """``(G,)`` harmonic-sum score ``Σ_k w_k Σ_c v_c |X_kc|`` of Fourier sums ``(G, K, C)``."""
+    return np.einsum("gkc,k,c->g", np.abs(coef[:, : len(weights)]), weights, channels)
+
+
+def _prominence(score: np.ndarray) -> tuple[int, float, float]:
+    """Best index, peak − median, and median of a tempo score."""
+    g = int(np.argmax(score))
+    med = float(np.median(score))
+    return g, float(score[g]) - med, med
+
+
+# --------------------------------------------------------------------------------------------
+# 4. Sections
+# --------------------------------------------------------------------------------------------
+
+
+def tempo_sections(
+    spectra: np.ndarray,
+    tempi: np.ndarray,
+    weights: np.ndarray,
+    channels: np.ndarray,
+    params: GridParams,
+) -> list[tuple[int, int]]:
+    """Block ranges ``[(i, j), ...]`` of steady tempo covering all blocks, in order.
+
+    ``spectra``: ``bar_spectra`` output on the tempo grid ``tempi``; ``weights``,
+    ``channels``: harmonic and channel weights. Dynamic programming over block boundaries: a
+    section scores the prominence of its tempo score; ``s`` sections must beat one section by
+    ``split_gain · (s − 1)`` of the one-section score and last ``min_section_s`` each. The
+    best such split whose sections are all steady and whose neighbours' tempi differ by
+    ``min_tempo_change`` wins; else one section.
+    """
+    n_blocks = spectra.shape[0] - 1
+    min_len = max(1, int(np.ceil(params.min_section_s / params.block_s)))
+    if n_blocks < 2 * min_len or params.max_sections < 2:
+        return [(0, n_blocks)]
+    cache: dict[tuple[int, int], float] = {}
+
+    def score(i: int, j: int) -> float:
+        if (i, j) not in cache:
+            cache[(i, j)] = _prominence(_tempo_score(spectra[j] - spectra[i], weights, channels))[1]
+        return cache[(i, j)]
+
+    penalty = params.split_gain * max(score(0, n_blocks), 1e-12)
+    n_sec = min(params.max_sections, n_blocks // min_len)
+    best = np.full((n_sec + 1, n_blocks + 1), -np.inf)
+    back = np.zeros((n_sec + 1, n_blocks + 1), dtype=int)
+    best[0, 0] = 0.0
+    for s in range(1, n_sec + 1):
+        for j in range(s * min_len, n_blocks + 1):
+            for i in range((s - 1) * min_len, j - min_len + 1):
+                v = best[s - 1, i] + score(i, j)
+                if v > best[s, j]:
+                    best[s, j], back[s, j] = v, i
+    totals = np.array([best[s, n_blocks] - penalty * (s - 1) for s in range(1, n_sec + 1)])
+    for s in 1 + np.argsort(-totals, kind="stable"):
+        if s == 1 or totals[s - 1] < totals[0]:
+            break
+        j, cuts = n_blocks, [n_blocks]
+        for k in range(s, 0, -1):
+            j = int(back[k, j])
+            cuts.append(j)
+        spans = list(zip(cuts[::-1][:-1], cuts[::-1][1:], strict=True))
+        peaks = [
+            _prominence(_tempo_score(spectra[j] - spectra[i], weights, channels)) for i, j in spans
+        ]
+        clear = all(
+            confidence_from_ratio(p / max(m, 1e-12)) >= STEADY_MIN_CONFIDENCE for _, p, m in peaks
+        )
+        change = np.abs(np.diff(np.log(tempi[[g for g, _, _ in peaks]])))
+        if clear and np.all(change >= np.log1p(params.min_tempo_change)):
+            return spans
+    return [(0, n_blocks)]
+
+
+# --------------------------------------------------------------------------------------------
+# 5. One section
+# --------------------------------------------------------------------------------------------
+
+
+def confidence_from_ratio(ratio: float) -> float:
+    """Confidence 0..1 of a spectral prominence ratio (see ``CONFIDENCE_RATIO``)."""
+    lo, hi = CONFIDENCE_RATIO
+    return float(np.clip((ratio - lo) / (hi - lo), 0.0, 1.0))
+
+
+def refine_tempo(
+    signals: np.ndarray,
+    fps: float,
+    start: int,
+    tempo: float,
+    params: GridParams,
+    channels: np.ndarray,
+) -> float:
+    """Tempo (BPM) within ``tempo · (1 ± refine_span)`` where the anchor harmonics are most
+    coherent over the section, sub-grid.
+
+    ``signals``: the section's ``(L, C)`` frames, the first being frame ``start``. The score
+    is ``Σ_{k ∈ anchor} Σ_c v_c |X_kc|``: at that tempo the step cycle that places the beats
+    stays in phase over the whole section. 51 tempi across the interval, then a parabola
+    through the best and its neighbours.
+    """
+    tempi = tempo * (1.0 + np.linspace(-params.refine_span, params.refine_span, 51))
+    coef = _coefficients(signals, fps, start, tempi, max(params.anchor_harmonics))
+    score = np.einsum(
+        "gkc,c->g", np.abs(coef[:, [k - 1 for k in params.anchor_harmonics]]), channels
+    )
+    g = int(np.argmax(score))
+    if 0 < g < len(tempi) - 1:
+        a, b, c = score[g - 1 : g + 2]
+        denom = a - 2.0 * b + c
+        shift = 0.5 * (a - c) / denom if denom < 0 else 0.0
+        return float(tempi[g] + shift * (tempi[1] - tempi[0]))
+    return float(tempi[g])
+
+
+def section_phase(
+    signals: np.ndarray,
+    fps: float,
+    start: int,
+    tempo: float,
+    params: GridParams,
+    channels: np.ndarray,
+) -> tuple[float, int, float]:
+    """Beat phase and downbeat of a section at ``tempo``.
+
+    ``signals``: the section's ``(L, C)`` frames, the first being frame ``start``, the last
+    column the kinematic-beat envelope; ``channels``: ``channel_weights``. Returns
+    ``(t0, down, clarity)``: the section's first beat ``t0`` (s; at most a quarter period
+    before its first frame), which beat ``t0 + j · 60 / tempo`` (j = 0 … 3) starts the bars,
+    and the downbeat's clarity: the gap between the two most downbeat-like beats over the
+    range of the four (pause hits, or the feet's bar cycle; see the module docstring), 0 for
+    a tie.
+    """
+    coef = _coefficients(signals, fps, start, np.array([tempo]))[0]  # (K, C)
+    act = coef @ (np.asarray(CHANNEL_SIGNS)[: coef.shape[1]] * channels)  # (K,)
+    psi = np.arange(4096) / 4096.0  # phase within the bar
+    harmonics = np.arange(1, N_HARMONICS + 1)
+    folded = np.real(act[None, :] * np.exp(2j * np.pi * np.outer(psi, harmonics)))
+    strongest = max(params.anchor_harmonics, key=lambda k: abs(act[k - 1]))
+    beat_phase = psi[int(np.argmin(folded[:, strongest - 1]))] % 0.25
+    bar_s = 240.0 / tempo
+    period = bar_s / 4.0
+    t_start = start / fps
+    # the four beat phases, ordered by their first time from the section start on (a beat up
+    # to a quarter period before it counts as at the start)
+    first = t_start - 0.25 * period + ((beat_phase * bar_s - t_start + 0.25 * period) % period)
+    cand = first + period * np.arange(4)
+    index = np.round((cand / bar_s) % 1.0 * 4096).astype(int) % 4096
+    pauses_lead = bool(channels[-1] >= PAUSE_SHARE * channels.sum())
+    if pauses_lead:
+        # pauses lead: the beat the kinematic beats (the last channel) hit most often, read at
+        # every bar but the first and last beat period (a take's ends hold no speed minimum)
+        edge = period * fps
+        last = signals.shape[0] - 1
+        bars = np.arange(int(np.ceil(signals.shape[0] / fps / bar_s)) + 1) * bar_s
+        level = np.zeros(4)
+        for k, t in enumerate((cand[:, None] + bars[None, :] - t_start) * fps):
+            t = t[(t >= edge) & (t <= last - edge)]
+            if len(t):
+                level[k] = -np.interp(t, np.arange(last + 1), signals[:, -1]).mean()
+    else:
+        # steps lead: the low point of the feet's bar cycle (their bar harmonic)
+        level = np.real(coef[0, FEET_CHANNEL] * np.exp(2j * np.pi * psi))[index]
+    order = np.argsort(level)
+    spread = float(level.max() - level.min())
+    clarity = float(level[order[1]] - level[order[0]]) / spread if spread > 0 else 0.0
+    if pauses_lead and clarity < params.downbeat_margin:
+        # hit counts tie: the earliest of the tied beats (a section starts on a bar)
+        down = int(np.flatnonzero(level - level[order[0]] <= params.downbeat_margin * spread)[0])
+        return float(first), down, 0.0
+    return float(first), int(order[0]), clarity
+
+
+# --------------------------------------------------------------------------------------------
+# 6. The take
+# --------------------------------------------------------------------------------------------
+
+
+def bars_at_downbeats(beats: np.ndarray, downbeats: np.ndarray) -> np.ndarray:
+    """``(B, 5)`` bars: the 4 beats from each downbeat and the next downbeat, 4 beats on.
+
+    A downbeat followed by another within 3 beats (a section boundary) starts no bar.
+    """
+    beats = np.asarray(beats, dtype=float)
+    down = np.asarray(downbeats, dtype=bool)
+    rows = [
+        beats[i : i + 5]
+        for i in np.flatnonzero(down)
+        if i + 4 < len(beats) and down[i + 4] and not down[i + 1 : i + 4].any()
+    ]
+    return np.stack(rows) if rows else np.zeros((0, 5))
+
+
+def estimate_grid(
+    signals: np.ndarray,
+    fps: float,
+    params: GridParams | None = None,
+    tempo_bpm: float | None = None,
+) -> BeatGrid:
+    """The beat and bar grid of a take from its ``step_signals`` ``(F, C)`` at ``fps``.
+
+    ``tempo_bpm``: a known tempo (one section at that tempo; phase and downbeat estimated).
+    Otherwise the pipeline of the module docstring. The frame-rate check is separate
+    (``motion_tempo_bpm``). Raises ``ValueError`` for less than two seconds of frames or
+    a non-positive tempo.
+    """
+    params = params or GridParams()
+    signals = np.asarray(signals, dtype=float)
+    n = signals.shape[0]
+    if n < 2.0 * fps:
+        raise ValueError(f"{n / fps:.2f} s is too short to estimate a beat grid (2 s at least)")
+    if tempo_bpm is not None and not tempo_bpm > 0:
+        raise ValueError(f"tempo must be positive, got {tempo_bpm}")
+    weights = np.asarray(params.tempo_weights, dtype=float)
+    block = max(1, int(round(params.block_s * fps)))
+    tempi = tempo_grid(params.prior_bpm, params.tempo_step)
+    spectra = bar_spectra(signals, fps, tempi, block)
+    channels = channel_weights(spectra[-1], weights, params.clarity_power)
+    if tempo_bpm is None:
+        spans = tempo_sections(spectra, tempi, weights, channels, params)
+    else:
+        spans = [(0, spectra.shape[0] - 1)]
+
+    sections: list[Section] = []
+    beats: list[np.ndarray] = []
+    downs: list[np.ndarray] = []
+    last_t = (n - 1) / fps
+    for i, j in spans:
+        f0, f1 = i * block, min(n, j * block)
+        seg = signals[f0:f1]
+        if tempo_bpm is None:
+            g, prom, med = _prominence(_tempo_score(spectra[j] - spectra[i], weights, channels))
+            tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, channels)
+            conf = confidence_from_ratio(prom / max(med, 1e-12))
+        else:
+            tempo, conf = float(tempo_bpm), 1.0
+        t0, down, clarity = section_phase(seg, fps, f0, tempo, params, channels)
+        period = 60.0 / tempo
+        # beat m of the section sits at t0 + m · period; the first section reaches back to 0 s
+        m_lo = -int(np.floor(t0 / period + 1e-9)) if i == 0 else 0
+        hi = f1 / fps if j < spectra.shape[0] - 1 else last_t
+        m = np.arange(m_lo, int(np.floor((hi - t0) / period + 1e-9)) + 1)
+        b, d = t0 + m * period, (m - down) % 4 == 0
+        if beats and len(beats[-1]):
+            keep = b >= beats[-1][-1] + 0.5 * period
+            b, d = b[keep], d[keep]
+        sections.append(Section(f0 / fps, f1 / fps, tempo, conf, clarity))
+        beats.append(b)
+        downs.append(d)
+
+    durations = np.array([s.end_s - s.start_s for s in sections])
+    confidence = float(np.average([s.confidence for s in sections], weights=durations))
+    flags: list[str] = []
+    if confidence < STEADY_MIN_CONFIDENCE:
+        flags.append("no_steady_beat")
+    if len(sections) > 1:
+        flags.append("tempo_changes")
+    return BeatGrid(
+        beats=np.concatenate(beats),
+        downbeats=np.concatenate(downs),
+        sections=sections,
+        tempo_bpm=sections[int(np.argmax(durations))].tempo_bpm,
+        confidence=confidence,
+        flags=flags,
+    )
+
+
+def partner_agreement(
+    beats_a: np.ndarray,
+    downbeats_a: np.ndarray,
+    tempo_a: float,
+    beats_b: np.ndarray,
+    downbeats_b: np.ndarray,
+    tempo_b: float,
+) -> dict:
+    """How well the grids of two takes danced together (one capture, one music) agree.
+
+    ``beats_*``: ``(N,)`` s; ``downbeats_*``: ``(D,)`` bar start times (s); ``tempo_*``: BPM.
+    Over the span both grids cover, both directions pooled: ``tempo_diff_pct`` (relative to
+    the mean tempo), ``median_offset_ms`` (each beat to the other grid's nearest beat),
+    ``downbeat_agreement`` (share of downbeats with one of the other's within 1/8 beat) and
+    ``downbeat_shift_beats`` (after a downbeat of ``a``, how many beats on, 0 … 3, the next
+    bar of ``b`` most often starts: 0 when they agree, 2 for half a bar). A 4-beat bar has no
+    8-count phase: bars that agree may still differ by 4 beats in an 8-count. NaN where the
+    grids share no span.
+    """
+    a, b = np.sort(np.asarray(beats_a, dtype=float)), np.sort(np.asarray(beats_b, dtype=float))
+    da = np.sort(np.asarray(downbeats_a, dtype=float))
+    db = np.sort(np.asarray(downbeats_b, dtype=float))
+    mean_tempo = 0.5 * (tempo_a + tempo_b)
+    beat = 60.0 / mean_tempo
+    out = {
+        "tempo_diff_pct": float(abs(tempo_a - tempo_b) / mean_tempo * 100.0),
+        "median_offset_ms": float("nan"),
+        "downbeat_agreement": float("nan"),
+        "downbeat_shift_beats": 0,
+    }
+    if not (len(a) and len(b)) or min(a[-1], b[-1]) <= max(a[0], b[0]):
+        return out
+    lo, hi = max(a[0], b[0]), min(a[-1], b[-1])
+
+    def inside(t: np.ndarray) -> np.ndarray:
+        return t[(t >= lo) & (t <= hi)]
+
+    offsets = np.concatenate([nearest_distance(inside(a), b), nearest_distance(inside(b), a)])
+    out["median_offset_ms"] = float(np.median(offsets) * 1000.0)
+    hits = np.concatenate(
+        [nearest_distance(inside(da), db) <= beat / 8, nearest_distance(inside(db), da) <= beat / 8]
+    )
+    if len(hits):
+        out["downbeat_agreement"] = float(hits.mean())
+    starts = inside(da)
+    nxt = np.searchsorted(db, starts - beat / 8)
+    ok = nxt < len(db)
+    if ok.any():
+        shift = np.round((db[nxt[ok]] - starts[ok]) / beat).astype(int) % 4
+        out["downbeat_shift_beats"] = int(np.bincount(shift, minlength=4).argmax())
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The frame-rate check: prior-free motion tempo
+# --------------------------------------------------------------------------------------------
 
 
 def periodicity_signals(
@@ -75,7 +620,7 @@ def periodicity_signals(
     feet: tuple[int, int],
     hands: tuple[int, int],
 ) -> np.ndarray:
-    """Left/right-symmetric kinematic signals whose period is a bar.
+    """Left/right-symmetric kinematic signals whose period is a bar (for ``motion_tempo_bpm``).
 
     ``positions``: ``(F, J, 3)`` world joint positions in metres (Y up); ``root``, ``feet``,
     ``hands``: joint indices into J. Returns ``(F, 4)``: pelvis height (m), summed foot speed
@@ -115,11 +660,10 @@ def mean_local_autocorrelation(
     win = int(min(n, max(8.0, 2.5 * max_lag_s) * fps))
     n_lags = int(min(max_lag_s * fps, win // 2)) + 1
     hop = max(1, int(hop_s * fps))
-    starts = range(0, max(1, n - win + 1), hop)
     overlap = (win - np.arange(n_lags)) / win
     total = np.zeros(n_lags)
     count = 0
-    for s in starts:
+    for s in range(0, max(1, n - win + 1), hop):
         w = x[s : s + win] - x[s : s + win].mean(axis=0)
         spec = np.fft.rfft(w, 2 * win, axis=0)
         ac = np.fft.irfft(spec * np.conj(spec), axis=0)[:n_lags]
@@ -131,17 +675,6 @@ def mean_local_autocorrelation(
     return total / count if count else total
 
 
-def _peak_lags(ac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Local maxima of ``ac`` (frames, parabolic sub-frame refinement) and their heights."""
-    idx, _ = find_peaks(ac)
-    idx = idx[(idx > 0) & (idx < len(ac) - 1)]
-    a, b, c = ac[idx - 1], ac[idx], ac[idx + 1]
-    denom = a - 2 * b + c
-    shift = np.where(np.abs(denom) > 1e-12, 0.5 * (a - c) / np.where(denom == 0, 1, denom), 0.0)
-    shift = np.clip(shift, -0.5, 0.5)
-    return idx + shift, b - 0.25 * (a - c) * shift
-
-
 def _value_near(ac: np.ndarray, lag: float, tol: float = 0.04) -> float:
     """Largest autocorrelation within ``±tol`` (relative) of ``lag`` frames; NaN beyond range."""
     lo, hi = int(np.floor(lag * (1 - tol))), int(np.ceil(lag * (1 + tol)))
@@ -150,283 +683,46 @@ def _value_near(ac: np.ndarray, lag: float, tol: float = 0.04) -> float:
     return float(ac[lo : hi + 1].max())
 
 
-def _rise(ac: np.ndarray, lag: float) -> float:
-    """Autocorrelation near ``lag`` above its lowest value over the half period before it.
+def motion_tempo_bpm(signals: np.ndarray, fps: float) -> float:
+    """Prior-free tempo (BPM): 4 beats per the shortest strong bar lag of ``signals (F, C)``
+    (``periodicity_signals``).
 
-    A periodic signal's autocorrelation dips between its peaks; a slowly wandering one decays
-    smoothly and rises nowhere, so it scores about zero however high its correlation is.
+    Bar lags are the autocorrelation peaks over ``FREE_BAR_RANGE_S`` scored
+    ``(A(L) + A(2L)) / 2`` (a bar that repeats also repeats two bars on, which rejects chance
+    short peaks); the shortest lag scoring ``SHORTEST_STRONG_RATIO`` × the best wins. NaN when
+    nothing repeats.
     """
-    peak = _value_near(ac, lag)
-    if np.isnan(peak):
-        return peak
-    return peak - float(ac[int(lag * 0.5) : int(np.ceil(lag)) + 1].min())
-
-
-def _refine_lag(ac: np.ndarray, lag: float) -> float:
-    """Sharpen a bar lag with the farthest multiple that still shows a clear peak."""
-    peaks, heights = _peak_lags(ac)
-    best = lag
-    base = _value_near(ac, lag)
-    for m in (2, 3, 4):
-        near = np.abs(peaks - m * lag) <= 0.04 * m * lag
-        if not near.any():
-            continue
-        k = np.flatnonzero(near)[np.argmax(heights[near])]
-        if heights[k] >= 0.5 * base:
-            best = peaks[k] / m
-    return float(best)
-
-
-@dataclass
-class TempoEstimate:
-    """A clip's tempo from bar-level periodicity.
-
-    - ``tempo_bpm``: beats per minute inside the prior (4 beats per ``bar_period_s``).
-    - ``motion_tempo_bpm``: the prior-free estimate (shortest strong bar period); NaN if none.
-    - ``confidence``: 0..1, ``score`` over ``FULL_CONFIDENCE_SCORE``.
-    - ``score``: the periodicity rise at the chosen tempo (see the module docstring).
-    - ``flags``: ``no_steady_beat``, ``tempo_outside_prior``, ``no_periodicity_in_prior``.
-    """
-
-    tempo_bpm: float
-    motion_tempo_bpm: float
-    bar_period_s: float
-    confidence: float
-    score: float
-    prior_bpm: tuple[float, float]
-    flags: list[str] = field(default_factory=list)
-
-    @property
-    def beat_period_s(self) -> float:
-        return 60.0 / self.tempo_bpm
-
-
-def _near(ac: np.ndarray, lags: np.ndarray, tol: float = 0.04) -> np.ndarray:
-    """``_value_near`` for many lags (frames)."""
-    return np.array([_value_near(ac, float(x), tol) for x in lags])
-
-
-def _rises(ac: np.ndarray, lags: np.ndarray) -> np.ndarray:
-    return np.array([_rise(ac, float(x)) for x in lags])
-
-
-def _tempo_scores(
-    ac: np.ndarray, env_ac: np.ndarray | None, fps: float, bpm: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Bar score and rise, pulse score and rise, each ``(len(bpm),)``, per tempo.
-
-    Bar: the signals' autocorrelation at one and two bars (4 and 8 beats). Pulse (when the
-    kinematic-beat envelope's autocorrelation ``env_ac`` is given, else NaN): the envelope's
-    autocorrelation at one and two beats. NaN where the lags run past the autocorrelation.
-    """
-    bar = 240.0 * fps / bpm
-    one, two = _near(ac, bar), _near(ac, 2 * bar)
+    ac = mean_local_autocorrelation(signals, fps, max_lag_s=2 * FREE_BAR_RANGE_S[1])
+    idx, _ = find_peaks(ac)
+    lags = idx[(idx >= FREE_BAR_RANGE_S[0] * fps) & (idx <= FREE_BAR_RANGE_S[1] * fps)]
+    if len(lags) == 0:
+        return float("nan")
+    one = np.array([_value_near(ac, float(lag)) for lag in lags])
+    two = np.array([_value_near(ac, 2.0 * lag) for lag in lags])
     score = np.where(np.isnan(two), one, 0.5 * (one + two))
-    r1, r2 = _rises(ac, bar), _rises(ac, 2 * bar)
-    rise = np.where(np.isnan(r2), r1, 0.5 * (r1 + r2))
-    if env_ac is None:
-        nan = np.full(len(bpm), np.nan)
-        return score, rise, nan, nan
-    beat = bar / 4
-    pulse = 0.5 * (_near(env_ac, beat) + _near(env_ac, 2 * beat))
-    pulse_rise = 0.5 * (_rises(env_ac, beat) + _rises(env_ac, 2 * beat))
-    return score, rise, pulse, pulse_rise
+    ok = score > 0
+    if not ok.any():
+        return float("nan")
+    strong = lags[ok & (score >= SHORTEST_STRONG_RATIO * score[ok].max())]
+    return float(240.0 * fps / strong.min())
 
 
-def _strong_peaks(score: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Indices within ``mask`` of candidates scoring ≥ 0.8 × the best there (and above 0)."""
-    s = np.where(np.isnan(score), -np.inf, score)
-    peaks = np.flatnonzero(mask & (s > 0))
-    if len(peaks) == 0:
-        return peaks
-    return peaks[s[peaks] >= SHORTEST_STRONG_RATIO * s[peaks].max()]
+def outside_prior(motion_tempo: float, prior_bpm: tuple[float, float]) -> bool:
+    """Whether a motion tempo is too fast for the prior and for dance (flag
+    ``tempo_outside_prior``): beyond ``PRIOR_MARGIN`` over the prior's top or
+    ``PLAUSIBLE_MAX_BPM``, whichever is higher.
 
-
-def estimate_tempo(
-    signals: np.ndarray,
-    fps: float,
-    prior_bpm: tuple[float, float] | None = None,
-    kinematic_beats: np.ndarray | None = None,
-) -> TempoEstimate:
-    """Tempo of a clip from ``periodicity_signals`` ``(F, C)`` sampled at ``fps``.
-
-    ``prior_bpm``: ``(lo, hi)`` plausible tempo range (default ``DEFAULT_PRIOR_BPM``).
-    ``kinematic_beats``: ``(K,)`` s (the pulse term; at least 4). The tempo is the fastest
-    candidate inside the prior whose bar + ``PULSE_WEIGHT`` × pulse score reaches
-    ``TEMPO_STRONG_RATIO`` × the best there (a periodic dance scores a bar and its double
-    alike; the shorter is the bar); without kinematic beats, the same on bar candidates and
-    the bar score. Without any periodicity in the prior: the motion tempo folded into the range
-    by octaves (flagged ``no_periodicity_in_prior``, confidence 0).
+    Only a faster one is suspicious: periodicity over two bars (a slower motion tempo) is
+    ordinary in dance, and so is a half-bar pattern of a slow dance under a narrow prior; a
+    body that repeats faster than 4 beats at 220 BPM is not.
     """
-    lo_bpm, hi_bpm = prior_bpm or DEFAULT_PRIOR_BPM
-    if not 0 < lo_bpm < hi_bpm:
-        raise ValueError(f"tempo prior must be 0 < lo < hi, got {prior_bpm}")
-    signals = np.asarray(signals, dtype=float)
-    max_lag_s = 2 * max(FREE_BAR_RANGE_S[1], 240.0 / lo_bpm)
-    ac = mean_local_autocorrelation(signals, fps, max_lag_s=max_lag_s)
-    env_ac = None
-    if kinematic_beats is not None and len(kinematic_beats) >= 4:
-        env = beat_envelope(kinematic_beats, signals.shape[0], fps)
-        env_ac = mean_local_autocorrelation(env, fps, max_lag_s=max_lag_s)
-        if not env_ac.any():
-            env_ac = None
-    free_lo, free_hi = 240.0 / FREE_BAR_RANGE_S[1], 240.0 / FREE_BAR_RANGE_S[0]
-    # Candidate tempi: 4 beats per peak lag of the signals' autocorrelation (bars), and 1 or 2
-    # beats per peak lag of the kinematic-beat envelope's (pulse).
-    bar_peaks, _ = _peak_lags(ac)
-    cand = [240.0 * fps / bar_peaks]
-    if env_ac is not None:
-        env_peaks, _ = _peak_lags(env_ac)
-        cand += [60.0 * fps / env_peaks, 120.0 * fps / env_peaks]
-    bpm = np.unique(np.round(np.concatenate(cand), 2)) if cand else np.zeros(0)
-    from_bar = np.isin(bpm, np.round(240.0 * fps / bar_peaks, 2))
-    score, rise, pulse, pulse_rise = _tempo_scores(ac, env_ac, fps, bpm)
-
-    # Prior-free motion tempo: the fastest strong bar periodicity over the free range (a
-    # periodic dance scores a bar and its double alike; the shorter is the bar).
-    free = _strong_peaks(score, from_bar & (bpm >= free_lo) & (bpm <= free_hi))
-    motion_tempo = float(bpm[free].max()) if len(free) else float("nan")
-
-    # Tempo: inside the prior, the fastest candidate whose bars repeat and whose beats the
-    # kinematic beats keep nearly as well as the best's (bar + PULSE_WEIGHT × pulse score ≥
-    # TEMPO_STRONG_RATIO × the best); without kinematic beats, the same on the bar score.
-    flags: list[str] = []
-    inside = (bpm >= lo_bpm * 0.98) & (bpm <= hi_bpm * 1.02)
-    if env_ac is None:
-        both = np.where(from_bar, np.nan_to_num(score, nan=-1.0), -1.0)
-    else:
-        both = np.nan_to_num(score, nan=-1.0) + PULSE_WEIGHT * np.nan_to_num(pulse, nan=-1.0)
-    k = None
-    conf_score = 0.0
-    ok = np.flatnonzero(inside & (both > 0))
-    if len(ok):
-        strong = ok[both[ok] >= TEMPO_STRONG_RATIO * both[ok].max()]
-        k = int(strong[np.argmax(bpm[strong])])
-    if k is not None:
-        bar_c = max(0.0, float(np.nan_to_num(min(score[k], rise[k]))))
-        beat_c = max(0.0, float(np.nan_to_num(min(pulse[k], pulse_rise[k]))))
-        # the bar's clarity, raised where the kinematic beats keep the beat more clearly
-        conf_score = max(bar_c, 0.5 * (bar_c + beat_c))
-    if k is not None:
-        tempo_bpm = float(bpm[k])
-    else:
-        flags.append("no_periodicity_in_prior")
-        tempo_bpm = motion_tempo if np.isfinite(motion_tempo) else float(np.sqrt(lo_bpm * hi_bpm))
-        while tempo_bpm > hi_bpm:
-            tempo_bpm /= 2
-        while tempo_bpm < lo_bpm:
-            tempo_bpm *= 2
-    mix = ac if env_ac is None else 0.5 * (ac + env_ac)
-    lag = _refine_lag(mix, 240.0 * fps / tempo_bpm)
-    confidence = float(np.clip(conf_score / FULL_CONFIDENCE_SCORE, 0.0, 1.0))
-    if confidence < STEADY_MIN_CONFIDENCE:
-        flags.append("no_steady_beat")
-    # Only a *faster* motion tempo is suspicious: periodicity over two bars (a slower motion
-    # tempo) is ordinary in dance, a strong one at half a bar is not.
-    if np.isfinite(motion_tempo) and motion_tempo > hi_bpm * (1 + PRIOR_MARGIN):
-        flags.append("tempo_outside_prior")
-    return TempoEstimate(
-        tempo_bpm=240.0 * fps / lag,
-        motion_tempo_bpm=motion_tempo,
-        bar_period_s=lag / fps,
-        confidence=confidence,
-        score=conf_score,
-        prior_bpm=(float(lo_bpm), float(hi_bpm)),
-        flags=flags,
-    )
+    limit = max(prior_bpm[1], PLAUSIBLE_MAX_BPM) * (1 + PRIOR_MARGIN)
+    return bool(np.isfinite(motion_tempo) and motion_tempo > limit)
 
 
-def beat_envelope(
-    beat_times: np.ndarray, n_frames: int, fps: float, sigma_s: float = 0.04
-) -> np.ndarray:
-    """``(F,)`` kinematic-beat envelope: unit impulses at ``beat_times`` (s), Gaussian-smoothed."""
-    env = np.zeros(n_frames)
-    idx = np.round(np.asarray(beat_times, dtype=float) * fps).astype(int)
-    idx = idx[(idx >= 0) & (idx < n_frames)]
-    np.add.at(env, idx, 1.0)
-    return gaussian_filter1d(env, sigma=max(0.5, sigma_s * fps), mode="constant")
-
-
-def track_beats(
-    envelope: np.ndarray, fps: float, period_s: float, tightness: float = 200.0
-) -> np.ndarray:
-    """Beat times (s) at about ``period_s`` that follow ``envelope`` ``(F,)`` (Ellis 2007 DP).
-
-    Each frame's score is its envelope value plus the best predecessor score between half and
-    twice a period earlier, penalised by ``tightness · log(interval / period)²``. The beats are
-    backtracked from the best frame in the last period and then extended with the period to
-    both ends of the clip, so that a bar grid covers the whole take.
-    """
-    env = np.asarray(envelope, dtype=float)
-    n = len(env)
-    period = period_s * fps
-    if n == 0 or period <= 1:
-        return np.zeros(0)
-    env = env / (env.std() + 1e-9)
-    lo, hi = max(1, int(round(period / 2))), int(round(2 * period))
-    offsets = np.arange(lo, hi + 1)
-    penalty = -tightness * np.log(offsets / period) ** 2
-    score = env.copy()
-    back = np.full(n, -1)
-    for t in range(lo, n):
-        prev = t - offsets
-        ok = prev >= 0
-        cand = score[prev[ok]] + penalty[ok]
-        k = int(np.argmax(cand))
-        if cand[k] > 0:
-            score[t] += cand[k]
-            back[t] = prev[ok][k]
-    tail = max(0, n - int(np.ceil(period)))
-    t = tail + int(np.argmax(score[tail:]))
-    frames = [t]
-    while back[frames[-1]] >= 0:
-        frames.append(int(back[frames[-1]]))
-    beats = np.array(frames[::-1], dtype=float)
-    # Extend with the period over the untracked head and tail.
-    # A beat up to a quarter period beyond either end snaps onto the end frame.
-    head = np.arange(beats[0] - period, -0.5 * period, -period)[::-1]
-    end = np.arange(beats[-1] + period, n - 1 + 0.5 * period, period)
-    head = np.maximum(head[head >= -0.25 * period], 0.0)
-    end = np.minimum(end[end <= n - 1 + 0.25 * period], n - 1.0)
-    beats = np.concatenate([head, beats, end])
-    return beats / fps
-
-
-def _nearest_distance(times: np.ndarray, events: np.ndarray) -> np.ndarray:
-    """Distance from each of ``times`` (any shape) to the nearest of sorted-able ``events``."""
-    ev = np.sort(np.asarray(events, dtype=float))
-    t = np.asarray(times, dtype=float)
-    if len(ev) == 0:
-        return np.full(t.shape, np.inf)
-    i = np.clip(np.searchsorted(ev, t), 1, len(ev) - 1) if len(ev) > 1 else np.zeros(t.shape, int)
-    left = np.abs(t - ev[np.maximum(i - 1, 0)])
-    right = np.abs(t - ev[i])
-    return np.minimum(left, right)
-
-
-def bar_phase(beats: np.ndarray, kinematic_beats: np.ndarray, period_s: float) -> tuple[int, float]:
-    """Which beat of every four is the downbeat, and how clearly (0..1).
-
-    ``beats``: ``(N,)`` s; ``kinematic_beats``: ``(K,)`` s. A beat is *hit* when a kinematic
-    beat lies within an eighth of a beat of it; the downbeat phase ``r`` in 0..3 maximises the
-    share of hit beats among ``beats[r::4]``, leaving out the first and last beat (a clip's ends
-    cannot hold a detected speed minimum). Ties (accents on beats 1 and 3 alike) go to the
-    earliest phase. The clarity is ``(best − second) / best``.
-    """
-    beats = np.asarray(beats, dtype=float)
-    kb = np.asarray(kinematic_beats, dtype=float)
-    if len(beats) < 4 or len(kb) == 0:
-        return 0, 0.0
-    hit = _nearest_distance(beats, kb) <= 0.125 * period_s
-    inner = np.zeros(len(beats), dtype=bool)
-    inner[1:-1] = True
-    means = np.array(
-        [hit[r::4][inner[r::4]].mean() if inner[r::4].any() else 0.0 for r in range(4)]
-    )
-    order = np.argsort(-means, kind="stable")
-    best = means[order[0]]
-    clarity = float((best - means[order[1]]) / best) if best > 0 else 0.0
-    return int(order[0]), clarity
+# --------------------------------------------------------------------------------------------
+# Bars from given beats, slots and signature labels
+# --------------------------------------------------------------------------------------------
 
 
 def grid_from_tempo(duration_s: float, tempo_bpm: float, first_beat_s: float = 0.0) -> np.ndarray:
@@ -448,6 +744,19 @@ def bars_from_beats(beats: np.ndarray, first_downbeat: int = 0) -> np.ndarray:
     if len(starts) == 0:
         return np.zeros((0, 5))
     return np.stack([beats[s : s + 5] for s in starts])
+
+
+def nearest_distance(times: np.ndarray, events: np.ndarray) -> np.ndarray:
+    """Distance (s) from each of ``times`` (any shape) to the nearest of ``events`` (inf
+    without events)."""
+    ev = np.sort(np.asarray(events, dtype=float))
+    t = np.asarray(times, dtype=float)
+    if len(ev) == 0:
+        return np.full(t.shape, np.inf)
+    i = np.clip(np.searchsorted(ev, t), 1, len(ev) - 1) if len(ev) > 1 else np.zeros(t.shape, int)
+    left = np.abs(t - ev[np.maximum(i - 1, 0)])
+    right = np.abs(t - ev[i])
+    return np.minimum(left, right)
 
 
 def slot_times(bar_beats: np.ndarray) -> np.ndarray:
@@ -475,7 +784,7 @@ def bar_signature_bits(
         return np.zeros((len(slots), N_SLOTS), dtype=np.int8)
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     half = (bb[:, 4] - bb[:, 0]) / N_SLOTS  # half-beat length per bar
-    nearest = _nearest_distance(slots, kb)
+    nearest = nearest_distance(slots, kb)
     return (nearest <= tolerance * half[:, None] + 1e-9).astype(np.int8)
 
 
@@ -493,5 +802,5 @@ def grid_fit(kinematic_beats: np.ndarray, bar_beats: np.ndarray) -> float:
         return 0.0
     slots = slot_times(bb).ravel()
     half = float(np.median(bb[:, 4] - bb[:, 0])) / N_SLOTS
-    d = _nearest_distance(kb, slots)
+    d = nearest_distance(kb, slots)
     return float(np.mean(d <= 0.25 * half))

@@ -1,4 +1,5 @@
-"""Tempo, beat grid, bar phase and signature labels from kinematics (dancegraph.motion.tempo)."""
+"""Beat grids from a take's motion, partner agreement, bars and signature labels
+(dancegraph.motion.tempo)."""
 
 from __future__ import annotations
 
@@ -7,74 +8,120 @@ import pytest
 
 from dancegraph.motion import tempo
 from dancegraph.motion.bvh import read_bvh
-from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.dataset import STEP_BODY_JOINTS, STEP_FOOT_JOINTS
+from dancegraph.motion.features import MAIN_JOINTS, kinematic_beats
+from dancegraph.motion.fk import canonical_positions, forward_kinematics
 from dancegraph.rhythm import signatures as sig
 
+FPS = 60.0
 
-def _step_signals(bpm: float, fps: float, seconds: float, seed: int = 0) -> np.ndarray:
-    """(F, 4) bar-periodic signals of a basic step: steps on beats 1 2 3, a pause on 4."""
+
+def _dance_signals(beats: np.ndarray, n_frames: int, seed: int = 0) -> np.ndarray:
+    """``(F, 4)`` step evidence of a dance on ``beats`` (s), the first a downbeat.
+
+    The body moves between beats and pauses on them, a big step every two beats and a small
+    one between (a two-beat step cycle), the feet quietest around the downbeat; the kinematic
+    beats (pauses) fall on every downbeat and on the third beat of every other bar.
+    """
     rng = np.random.default_rng(seed)
-    t = np.arange(int(seconds * fps)) / fps
-    beat = 60.0 / bpm
-    steps = np.array([k * beat for k in range(int(seconds / beat) + 2) if k % 4 != 3])
-    pulse = np.exp(-0.5 * ((t[:, None] - steps[None, :]) / (0.12 * beat)) ** 2).sum(axis=1)
-    sway = np.sin(2 * np.pi * t / (4 * beat))  # one body sway per bar
-    cols = [0.9 + 0.03 * sway, pulse, 0.5 * pulse + 0.3 * sway, 0.4 * pulse]
-    return np.stack(cols, axis=1) + 0.05 * rng.standard_normal((len(t), 4))
+    t = np.arange(n_frames) / FPS
+    move = np.zeros(n_frames)
+    for i in range(len(beats) - 1):
+        u = (t - beats[i]) / (beats[i + 1] - beats[i])
+        inside = (u >= 0) & (u < 1)
+        move[inside] += (1.0 if i % 2 == 0 else 0.4) * np.sin(np.pi * u[inside]) ** 2
+    pauses = [b for i, b in enumerate(beats) if i % 4 == 0 or i % 8 == 2]
+    bar_phase = np.interp(t, beats, np.arange(len(beats)) / 4.0)
+    feet = move**2 * (1.0 - 0.5 * np.cos(2 * np.pi * bar_phase))  # quietest at the downbeat
+    cols = [move, feet, 0.5 * move, tempo.event_envelope(np.array(pauses), n_frames, FPS)]
+    x = np.stack(cols, axis=1) + 0.05 * rng.standard_normal((n_frames, 4))
+    return (x - x.mean(axis=0)) / x.std(axis=0)
 
 
-@pytest.mark.parametrize("bpm", [96.0, 128.0, 168.0])
-def test_estimate_tempo_finds_the_bar_of_a_step_pattern(bpm):
-    est = tempo.estimate_tempo(_step_signals(bpm, 60.0, 40.0), 60.0, (80.0, 200.0))
-    assert est.tempo_bpm == pytest.approx(bpm, rel=0.01)
-    assert est.bar_period_s == pytest.approx(240.0 / bpm, rel=0.01)
-    assert est.confidence > 0.8
-    assert est.flags == []
+def _beats(bpm: float, start: float, end: float) -> np.ndarray:
+    return np.arange(start, end, 60.0 / bpm)
 
 
-def test_frame_rate_read_twice_too_high_is_flagged():
-    # The same frames read at 120 instead of 60 fps: the motion runs twice as fast.
-    signals = _step_signals(168.0, 60.0, 40.0)
-    right = tempo.estimate_tempo(signals, 60.0, (150.0, 220.0))
-    wrong = tempo.estimate_tempo(signals, 120.0, (150.0, 220.0))
-    assert right.motion_tempo_bpm == pytest.approx(168.0, rel=0.02)
-    assert "tempo_outside_prior" not in right.flags
-    assert wrong.motion_tempo_bpm == pytest.approx(336.0, rel=0.02)
-    assert "tempo_outside_prior" in wrong.flags
+@pytest.mark.parametrize(("bpm", "prior"), [(96.0, None), (128.0, None), (163.37, (150, 220))])
+def test_grid_recovers_tempo_beats_and_downbeats_at_sub_frame_precision(bpm, prior):
+    truth = _beats(bpm, 0.4137, 40.0)
+    params = tempo.GridParams(prior_bpm=prior) if prior else None
+    grid = tempo.estimate_grid(_dance_signals(truth, int(40 * FPS)), FPS, params)
+    assert grid.tempo_bpm == pytest.approx(bpm, rel=2e-4)
+    assert grid.confidence > 0.8 and grid.flags == []
+    # every true beat has a grid beat within 3 ms (a frame is 16.7 ms) ...
+    assert np.max(tempo.nearest_distance(truth[1:-1], grid.beats)) < 0.003
+    # ... and the intervals are not whole frames
+    assert (
+        np.ptp(np.diff(grid.beats) * FPS % 1.0) < 1e-6 and np.diff(grid.beats)[0] * FPS % 1 > 0.01
+    )
+    bars = grid.bars
+    assert np.max(tempo.nearest_distance(bars[:, 0], truth[::4])) < 0.003
+    np.testing.assert_allclose(bars[:, 4] - bars[:, 0], 240.0 / grid.tempo_bpm)
+
+
+def test_a_tempo_change_gives_sections_each_with_its_tempo():
+    first = _beats(150.0, 0.2, 20.0)
+    second = first[-1] + 60.0 / 175.0 * np.arange(1, 200)
+    truth = np.concatenate([first, second[second < 40.0]])
+    grid = tempo.estimate_grid(
+        _dance_signals(truth, int(40 * FPS)), FPS, tempo.GridParams(prior_bpm=(130.0, 200.0))
+    )
+    assert [round(s.tempo_bpm) for s in grid.sections] == [150, 175]
+    assert grid.sections[0].end_s == pytest.approx(20.0, abs=2.0)
+    assert "tempo_changes" in grid.flags
+    inner = truth[(truth > 1.0) & (truth < 39.0)]
+    assert np.median(tempo.nearest_distance(inner, grid.beats)) < 0.005
+    # one section when the manifest fixes the tempo
+    fixed = tempo.estimate_grid(_dance_signals(truth, int(40 * FPS)), FPS, tempo_bpm=150.0)
+    assert len(fixed.sections) == 1 and fixed.tempo_bpm == 150.0
+
+
+def test_known_tempo_places_phase_and_downbeat():
+    truth = _beats(110.0, 1.234, 30.0)
+    grid = tempo.estimate_grid(_dance_signals(truth, int(30 * FPS)), FPS, tempo_bpm=110.0)
+    assert np.max(tempo.nearest_distance(truth[1:-1], grid.beats)) < 0.003
+    assert np.max(tempo.nearest_distance(grid.bars[:, 0], truth[::4])) < 0.003
+    assert grid.sections[0].downbeat_clarity > 0.1
 
 
 def test_noise_has_no_steady_beat():
     rng = np.random.default_rng(3)
-    noise = np.cumsum(rng.standard_normal((2400, 4)), axis=0)  # random walk, no period
-    est = tempo.estimate_tempo(noise, 60.0, (80.0, 200.0))
-    assert "no_steady_beat" in est.flags
-    assert est.confidence < tempo.STEADY_MIN_CONFIDENCE
+    noise = np.cumsum(rng.standard_normal((2400, 4)), axis=0)  # random walks, no period
+    grid = tempo.estimate_grid(noise - noise.mean(axis=0), FPS)
+    assert "no_steady_beat" in grid.flags
+    assert grid.confidence < tempo.STEADY_MIN_CONFIDENCE
 
 
-def test_track_beats_follows_a_drifting_pulse():
-    fps = 60.0
-    # 120 BPM slowing by 3 % over the take, kinematic beats on every beat (jittered).
-    rng = np.random.default_rng(1)
-    intervals = np.linspace(0.5, 0.515, 60)
-    truth = 0.3 + np.concatenate([[0.0], np.cumsum(intervals)])
-    kb = truth + rng.normal(0, 0.01, len(truth))
-    n = int((truth[-1] + 0.4) * fps)
-    beats = tempo.track_beats(tempo.beat_envelope(kb, n, fps), fps, 0.507)
-    nearest = np.array([np.min(np.abs(beats - t)) for t in truth])
-    assert np.all(nearest < 2.0 / fps)
-    assert len(beats) == pytest.approx(len(truth), abs=1)
+def test_bad_input_is_refused():
+    with pytest.raises(ValueError, match="too short"):
+        tempo.estimate_grid(np.zeros((60, 4)), FPS)
+    with pytest.raises(ValueError, match="prior"):
+        tempo.GridParams(prior_bpm=(200.0, 100.0))
+    with pytest.raises(ValueError, match="positive"):
+        tempo.estimate_grid(np.zeros((600, 4)), FPS, tempo_bpm=0.0)
 
 
-def test_bar_phase_puts_the_downbeat_on_the_accented_beat():
-    beats = np.arange(40) * 0.5
-    kb = beats[2::4] + 0.01  # kinematic beats on every third beat of four
-    phase, clarity = tempo.bar_phase(beats, kb, 0.5)
-    assert phase == 2
-    assert clarity > 0.9
-    bars = tempo.bars_from_beats(beats, phase)
-    assert bars.shape == (9, 5)
-    assert bars[0, 0] == pytest.approx(1.0)
-    np.testing.assert_allclose(bars[:, 4], bars[:, 0] + 2.0)
+def test_partner_agreement():
+    beats = _beats(165.0, 0.3, 30.0)
+    down = beats[::4]
+    same = tempo.partner_agreement(beats, down, 165.0, beats + 0.02, down + 0.02, 165.0)
+    assert same["tempo_diff_pct"] == 0.0
+    assert same["median_offset_ms"] == pytest.approx(20.0, abs=0.1)
+    assert same["downbeat_agreement"] == 1.0 and same["downbeat_shift_beats"] == 0
+    half_bar = tempo.partner_agreement(beats, down, 165.0, beats, beats[2::4], 166.0)
+    assert half_bar["downbeat_agreement"] == 0.0 and half_bar["downbeat_shift_beats"] == 2
+    assert half_bar["tempo_diff_pct"] == pytest.approx(100 / 165.5, rel=1e-6)
+    apart = tempo.partner_agreement(beats, down, 165.0, beats + 100.0, down + 100.0, 165.0)
+    assert np.isnan(apart["median_offset_ms"])
+
+
+def test_bars_at_downbeats_skip_a_bar_cut_by_a_new_section():
+    beats = np.arange(14) * 0.5
+    down = np.zeros(14, bool)
+    down[[0, 4, 6, 10]] = True  # a new section restarts the bars at beat 6
+    bars = tempo.bars_at_downbeats(beats, down)
+    np.testing.assert_allclose(bars[:, 0], [0.0, 3.0])
 
 
 def test_signature_bits_from_kinematic_beats_at_half_beat_slots():
@@ -103,34 +150,59 @@ def test_grid_from_tempo_and_grid_fit():
     assert tempo.grid_fit(off_grid, bars) == 0.0
 
 
-def _salsa_signals(path, fps):
+def _salsa(path, fps):
     motion = read_bvh(path, fps=fps)
-    pos, _ = forward_kinematics(motion)
+    pos, world = forward_kinematics(motion)
     sk = motion.skeleton
-    ix = {
-        k: sk.index(sk.canonical[k])
-        for k in ("hips", "left_ankle", "right_ankle", "left_wrist", "right_wrist")
-    }
-    return tempo.periodicity_signals(
+    main = canonical_positions(sk, pos, world, MAIN_JOINTS)
+    ix = {k: sk.index(sk.canonical[k]) for k in ("hips", "left_ankle", "right_ankle")}
+    ix |= {k: sk.index(sk.canonical[k]) for k in ("left_wrist", "right_wrist")}
+    steps = tempo.step_signals(
+        canonical_positions(sk, pos, world, STEP_BODY_JOINTS),
+        canonical_positions(sk, pos, world, STEP_FOOT_JOINTS),
+        kinematic_beats(main, fps),
+        fps,
+    )
+    periodic = tempo.periodicity_signals(
         pos,
         fps,
         root=ix["hips"],
         feet=(ix["left_ankle"], ix["right_ankle"]),
         hands=(ix["left_wrist"], ix["right_wrist"]),
     )
+    return steps, periodic
 
 
-def test_real_salsa_tempo_near_168_at_60_fps_and_flagged_at_120(salsa_dir):
+def test_real_salsa_partners_gridded_apart_agree(salsa_dir):
+    # Two trials whose dancers' grids agree (docs/mocap-beats.md has all 14 pairs): each take
+    # is gridded from its own motion only, at sub-frame precision.
+    params = tempo.GridParams(prior_bpm=(150.0, 220.0))
+    for trial in ("13", "15"):
+        grids = [
+            tempo.estimate_grid(
+                _salsa(salsa_dir / f"{who}_{trial}_scaled.bvh", 60.0)[0], 60.0, params
+            )
+            for who in ("60", "61")
+        ]
+        a, b = grids
+        agreement = tempo.partner_agreement(
+            a.beats, a.bars[:, 0], a.tempo_bpm, b.beats, b.bars[:, 0], b.tempo_bpm
+        )
+        assert agreement["tempo_diff_pct"] < 1.0, trial
+        assert agreement["median_offset_ms"] < 40.0, trial
+        assert agreement["downbeat_agreement"] >= 0.8, trial
+        assert 160.0 < a.tempo_bpm < 170.0
+
+
+def test_real_salsa_motion_tempo_flags_the_header_frame_rate(salsa_dir):
     takes = ["60_01", "60_03", "60_13", "60_15"]
     at60, at120 = [], []
     for take in takes:
-        signals = _salsa_signals(salsa_dir / f"{take}_scaled.bvh", 60.0)
-        at60.append(tempo.estimate_tempo(signals, 60.0, (150.0, 220.0)))
-        at120.append(tempo.estimate_tempo(signals, 120.0, (150.0, 220.0)))
-    tempi = np.array([e.tempo_bpm for e in at60])
-    assert np.all((tempi > 155) & (tempi < 180)), tempi
-    assert 160 < np.median([e.motion_tempo_bpm for e in at60]) < 176
-    assert not any("tempo_outside_prior" in e.flags for e in at60)
+        periodic = _salsa(salsa_dir / f"{take}_scaled.bvh", 60.0)[1]
+        at60.append(tempo.motion_tempo_bpm(periodic, 60.0))
+        at120.append(tempo.motion_tempo_bpm(periodic, 120.0))
+    assert 160 < np.median(at60) < 176
+    assert not any(tempo.outside_prior(t, (150.0, 220.0)) for t in at60)
     # Read at the header's 120 fps the same takes move at ~330 BPM: every one is flagged.
-    assert all("tempo_outside_prior" in e.flags for e in at120)
-    assert np.median([e.motion_tempo_bpm for e in at120]) > 300
+    assert all(tempo.outside_prior(t, (150.0, 220.0)) for t in at120)
+    assert np.median(at120) > 300
