@@ -400,7 +400,7 @@ def test_cli_dataset_show_prints_the_grids(demo_dir, demo_manifest, tmp_path, ca
     capsys.readouterr()
     assert cli_main(["dataset", "show", "demo", "--store", store, "--json"]) == 0
     shown = json.loads(capsys.readouterr().out)
-    ds = load_dataset(ObjectStore(Path(store)), "demo")
+    ds = load_dataset(FileStore(Path(store)), "demo")
     assert shown["name"] == "demo" and shown["version"] == ds.version
     assert [c["id"] for c in shown["clips"]] == [c.id for c in ds.clips]
     for c in shown["clips"]:
