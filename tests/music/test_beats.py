@@ -15,7 +15,9 @@ import pytest
 from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
 from dancegraph.music.beats import (
+    BEATNET_1_1_3,
     SLIP,
+    BeatParams,
     _spectral,
     beat_f_measure,
     dotted_pulse,
@@ -318,7 +320,10 @@ def test_beats_stop_where_the_music_stops() -> None:
     assert beat_f_measure(beats, res.beats) >= 0.97
     assert res.evidence["beats_outside_sound"] >= 2
     # without the votes the tracker is BeatNet's own: nothing dropped
-    assert "beats_outside_sound" not in track_beats(song.y, song.sr, vote=False).evidence
+    assert (
+        "beats_outside_sound"
+        not in track_beats(song.y, song.sr, params=BeatParams(steps=frozenset())).evidence
+    )
 
 
 def test_within_sound_keeps_the_beats_between_the_first_and_last_onset() -> None:
@@ -913,7 +918,7 @@ def test_vibe_ace_against_beatnet_reference(cc_music_dir: Path, shared: Path) ->
     # the same as, BeatNet's model 1 alone
     assert beat_f_measure(ref[:, 0], res.beats) > 0.75
     # model 1 alone with BeatNet's decoder settings is BeatNet itself
-    one = track_beats(y, sr, models=(1,), params=barpointer.MADMOM, vote=False)
+    one = track_beats(y, sr, params=BEATNET_1_1_3)
     np.testing.assert_allclose(one.beats, ref[:, 0], atol=1e-6)
     np.testing.assert_array_equal(one.beat_positions, ref[:, 1].astype(int))
 
