@@ -199,7 +199,7 @@ DOTTED = {
 OCTAVE = {
     "min_share": 0.15,  # each of the two levels held for this share of the grid's span
     "max_between": 0.25,  # tempos between the two for at most this share ...
-    "min_jump": 0.11,  # ... and somewhere the tempo changes this much within 4 beats: it jumps
+    "min_jump": 1.35,  # ... and somewhere the tempo changes this much within 4 beats: it jumps
 }
 
 #: the decoder's tempo range, +-15 %, when it decodes again at one metrical level
@@ -244,9 +244,11 @@ SLIP = {
     "side_margin": 0.2,  # ... where the two sides' mean gains differ by more than this
     "edge_beats": 12,  # one slip: an intro/outro of this many beats or more ...
     "edge_share": 0.25,  # ... and at most this share of the beats moves (the body sets the pulse)
-    # a slip jumps: one interval of its window is this far off the running one (a steady grid
-    # on 20 ms frames jitters by up to 8 % at 138 BPM and can drift by a third of a beat over 8
-    # beats without a jump)
+    # a slip is a slide or a jump, not jitter: 4 of its window's intervals hold this share of
+    # its phase change, or one interval is this far off the running one (a steady grid on 20 ms
+    # frames at 138 BPM jitters by up to 8 % and drifts a third of a beat over 8 beats, spread
+    # evenly: 0.6 of it in 4 intervals; the decoder slides in 4-5 beats, 0.8-1.2)
+    "min_concentration": 0.75,
     "min_jump": 0.11,
 }
 
@@ -737,6 +739,9 @@ def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     def irregular_at(k: int) -> np.ndarray:
         return np.abs(ibi[k - w : k + w] / local[k - w : k + w] - 1.0)
 
+    def slide(k: int) -> float:  # the largest phase change over 4 intervals of the window
+        return float(np.abs(drift[k - w + 4 : k + w + 1] - drift[k - w : k + w - 3]).max())
+
     k = w
     while k < len(t) - w:
         step = abs(drift[k + w] - drift[k - w])
@@ -747,7 +752,10 @@ def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             and len(before)
             and len(after)
             and abs(np.median(after) / np.median(before) - 1.0) <= SLIP["same_tempo"]
-            and irregular_at(k).max() >= SLIP["min_jump"]
+            and (
+                irregular_at(k).max() >= SLIP["min_jump"]
+                or slide(k) >= SLIP["min_concentration"] * step
+            )
         ):
             centres.append(k)
             splits.append(k - w + int(np.argmax(irregular_at(k))) + 1)
@@ -1224,6 +1232,10 @@ class BeatParams:
     def without(self, *names: str) -> BeatParams:
         """These parameters with the steps ``names`` switched off."""
         return replace(self, steps=self.steps - set(names))
+
+    def with_steps(self, *names: str) -> BeatParams:
+        """These parameters with the steps ``names`` switched on (ValueError for unknown ones)."""
+        return replace(self, steps=self.steps | set(names))
 
 
 #: BeatNet 1.1.3 itself: model 1, its own decoder settings, no step after the decoder

@@ -128,6 +128,26 @@ def test_cli_analyze(analysed, capsys, tmp_path):
     assert "audio_undecodable" in capsys.readouterr().err
 
 
+def test_cli_analyze_many_files_as_json_lines(analysed, capsys, tmp_path):
+    """One process, one line per file with its path; an unreadable file gives its error code
+    and the files after it are still analysed."""
+    _, wav, a = analysed
+    bad = tmp_path / "notes.mp3"
+    bad.write_text("this is not audio\n" * 50)
+    missing = tmp_path / "missing.wav"
+    assert main(["analyze", str(wav), str(bad), str(missing), str(wav), "--jsonl"]) == 2
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["path"] for x in lines] == [str(wav), str(bad), str(missing), str(wav)]
+    assert lines[0]["n_bars"] == a.n_bars and lines[0] == lines[3]
+    assert lines[1]["error"]["code"] == "audio_undecodable"
+    assert lines[2]["error"]["code"].startswith("audio_")
+    assert main(["analyze", str(wav), "--jsonl", "--json"]) == 0
+    (full,) = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert full["path"] == str(wav) and len(full["bars"]) == a.n_bars
+    with pytest.raises(SystemExit):  # several files only as JSON lines
+        main(["analyze", str(wav), str(wav)])
+
+
 def test_array_input_needs_a_rate():
     with pytest.raises(AudioError) as e:
         analyze(np.zeros(22050, dtype=np.float32))
