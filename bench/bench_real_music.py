@@ -67,6 +67,7 @@ class Clip:
     positions: np.ndarray
     duration_s: float
     evidence: Evidence | AudioError
+    evidence_1: Evidence | AudioError  # BeatNet's model 1 alone (the BeatNet 1.1.3 row)
     held_out: bool = False
 
     @property
@@ -114,12 +115,14 @@ def load_clips(root: Path, held_out_last: int) -> list[Clip]:
         y, sr = load_audio(audio)
         times, pos = read
         keep = times <= len(y) / sr
-        try:
-            ev: Evidence | AudioError = beat_evidence(y, sr)
-        except AudioError as exc:
-            ev = exc
+        evs: list[Evidence | AudioError] = []
+        for models in (BeatParams().models, BEATNET_1_1_3.models):
+            try:
+                evs.append(beat_evidence(y, sr, models=models))
+            except AudioError as exc:
+                evs.append(exc)
         genre = re.split(r"[._]", audio.stem)[0]
-        clips.append(Clip(audio.stem, genre, times[keep], pos[keep], len(y) / sr, ev))
+        clips.append(Clip(audio.stem, genre, times[keep], pos[keep], len(y) / sr, *evs))
     for genre in {c.genre for c in clips}:
         mine = [c for c in clips if c.genre == genre]
         for c in mine[len(mine) - held_out_last :] if held_out_last else []:
@@ -130,9 +133,10 @@ def load_clips(root: Path, held_out_last: int) -> list[Clip]:
 def score(clip: Clip, params: BeatParams) -> dict:
     """One clip's metrics under ``params`` (a refused clip scores 0 and counts as no_beat)."""
     try:
-        if isinstance(clip.evidence, AudioError):
-            raise clip.evidence
-        bt = track_evidence(clip.evidence, params)
+        ev = clip.evidence if params.models == BeatParams().models else clip.evidence_1
+        if isinstance(ev, AudioError):
+            raise ev
+        bt = track_evidence(ev, params)
     except AudioError:
         return {"beat_f": 0.0, "down_f": 0.0, "meter": False, "octave": "none", "no_beat": True}
     ratio = bt.tempo_bpm / clip.tempo_bpm

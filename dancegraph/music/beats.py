@@ -991,6 +991,7 @@ class Evidence:
     act: np.ndarray | None
     spec: _Spectral
     values: dict
+    models: tuple[int, ...] = DEFAULT_MODELS
     notes: list[str] = field(default_factory=list)
     _librosa: tuple[np.ndarray, np.ndarray, int] | None = None
 
@@ -1303,7 +1304,7 @@ def beat_evidence(
             if method == "beatnet":
                 raise
             notes.append(f"beatnet_weights_missing: {exc.message}; librosa fallback used")
-    return Evidence(act=act, spec=_spectral(y22), values=values, notes=notes)
+    return Evidence(act=act, spec=_spectral(y22), values=values, models=models, notes=notes)
 
 
 def track_beats(
@@ -1331,9 +1332,12 @@ def track_beats(
 
 def track_evidence(ev: Evidence, params: BeatParams | None = None) -> BeatTracking:
     """:func:`track_beats` on evidence already computed (:func:`beat_evidence` with the same
-    ``params.models``): decode, the no-beat test, the steps, tempo and confidence. The
-    evidence is not changed, so one evidence serves many parameters (the benchmarks)."""
+    ``params.models``, else ValueError): decode, the no-beat test, the steps, tempo and
+    confidence. The evidence is not changed, so one evidence serves many parameters (the
+    benchmarks). Raises ``AudioError`` ``no_beat`` as :func:`track_beats`."""
     params = params or BeatParams()
+    if ev.act is not None and tuple(ev.models) != tuple(params.models):
+        raise ValueError(f"evidence of models {ev.models}, parameters of {params.models}")
     values = dict(ev.values)
     ev = replace(ev, values=values)
     warnings = list(ev.notes)

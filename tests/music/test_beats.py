@@ -16,9 +16,13 @@ from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
 from dancegraph.music.beats import (
     BEATNET_1_1_3,
+    DEFAULT_STEPS,
+    NO_BEAT,
     SLIP,
+    STEPS,
     BeatParams,
     _spectral,
+    beat_evidence,
     beat_f_measure,
     dotted_pulse,
     find_slips,
@@ -30,6 +34,7 @@ from dancegraph.music.beats import (
     split_beats,
     subdivision_strength,
     track_beats,
+    track_evidence,
     within_sound,
 )
 from dancegraph.music.decode import load_audio
@@ -1091,3 +1096,91 @@ def test_short_and_malformed_arrays() -> None:
     y = song.y.copy()
     y[1000:2000] = np.nan  # non-finite samples are zeroed, not propagated
     assert len(track_beats(y, song.sr).beats) > 10
+
+
+# --- the pipeline ----------------------------------------------------------------------------
+
+
+def test_steps_run_in_one_visible_order_each_switchable() -> None:
+    names = [name for name, _ in STEPS]
+    assert len(set(names)) == len(names) and DEFAULT_STEPS <= set(names)
+    assert names.index("halve") < names.index("slips") < names.index("group")
+    assert names[-1] == "within_sound"
+    with pytest.raises(ValueError):
+        BeatParams(steps=frozenset({"no_such_step"}))
+    p = BeatParams().without("group").with_steps("swing")
+    assert "group" not in p.steps and "swing" in p.steps and BeatParams().steps == DEFAULT_STEPS
+    song = _song(4, 4, 128.0)
+    ev = beat_evidence(song.y, song.sr)
+    same = track_evidence(ev)
+    np.testing.assert_array_equal(same.beats, track_beats(song.y, song.sr).beats)
+    assert "beats_outside_sound" not in ev.values  # the evidence is not changed by a run
+    with pytest.raises(ValueError):  # evidence of three models, parameters of one
+        track_evidence(ev, BEATNET_1_1_3)
+
+
+def test_a_network_sure_of_its_downbeats_keeps_them_against_the_harmony() -> None:
+    """Chords that change on the third beat of every bar: the harmony (weight 1.5) outvotes a
+    network that is unsure of its downbeats, not one that is sure (GTZAN: four clips whose
+    right downbeats, the network at 0.80-0.92 on them, were moved by two beats)."""
+    n, step = 64, 25  # beats at 0.5 s, 50 fps
+    frames = np.arange(n) * step + 10
+    t = n * step + 40
+    true_down = np.arange(n) % 4 == 0
+    chord = np.zeros((12, t))
+    for k in range(n):  # chords C and G alternating, changing on beat 3 of each bar
+        pcs = (0, 4, 7) if ((k - 2) // 4) % 2 == 0 else (7, 11, 2)
+        a, b = frames[k], frames[k] + step
+        chord[list(pcs), a:b] = 1.0
+    flat = np.ones(t)
+    positions = (np.arange(n) % 4) + 1
+    for down, other, kept in ((0.9, 0.05, True), (0.45, 0.3, False)):
+        act = np.full((t, 2), 0.02)
+        act[frames, 1] = np.where(true_down, down, other)
+        act[frames, 0] = 0.5
+        new, meters, _ = bargroup.group_beats(
+            positions, np.full(n, 4), act, frames, flat, flat, chord
+        )
+        assert meters[0] == 4
+        assert np.array_equal(new == 1, true_down) is kept
+
+
+def test_a_faint_pulse_gets_beats_with_a_warning_not_no_beat() -> None:
+    """A song 3 dB under white noise: its beats are still right, but its pulse strength (0.68)
+    is under the clear-pulse contrast (2.16 < 2.4) that once refused it as no_beat. It gets
+    beats, a weak_pulse warning and half the confidence; 6 dB under, it is refused."""
+    song = _song(3, 4, 100.0)
+    noise = np.random.default_rng(0).standard_normal(len(song.y)).astype(np.float32)
+    for snr_db, usable in ((-3, True), (-6, False)):
+        y = song.y / np.std(song.y) * np.float32(10 ** (snr_db / 20)) + noise
+        y = (0.9 * y / np.abs(y).max()).astype(np.float32)
+        if not usable:
+            with pytest.raises(AudioError) as err:
+                track_beats(y, song.sr)
+            assert err.value.code == "no_beat"
+            continue
+        res = track_beats(y, song.sr)
+        assert any(w.startswith("weak_pulse") for w in res.warnings)
+        assert res.evidence["beatnet_contrast"] < NO_BEAT["beatnet"]["clear_contrast"]
+        assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
+        assert res.tempo_confidence < 0.5
+
+
+def test_find_slips_ignores_the_jitter_of_a_steady_grid() -> None:
+    """The decoder's grid of a 138 BPM metal clip (GTZAN metal.00004): 20 ms frames, intervals
+    0.40-0.46 s, a drift of a third of a beat over 8 beats spread evenly, no slip (the slip mend
+    had moved 12 beats, downbeat F 0.91 -> 0.45); the same grid sliding half a beat over 4
+    beats, as the decoder does, is a slip."""
+    ibi = (
+        np.array(
+            [44, 42, 44, 46, 44, 44, 42, 44, 44, 46, 42, 44, 44, 46, 44, 42, 44, 44, 44, 44, 42, 44]
+            + [42, 42, 40, 44, 40, 44, 40, 42, 44, 40, 46, 42, 46, 44, 42, 44, 44, 44, 44, 46, 42]
+        )
+        / 100.0
+    )
+    grid = np.r_[0.5, 0.5 + np.cumsum(ibi)]
+    assert len(find_slips(grid)[0]) == 0
+    slid = grid.copy()
+    slid[20:] += 0.2175
+    slid[16:20] += np.linspace(0.05, 0.2, 4)
+    assert len(find_slips(slid)[0]) == 1
