@@ -30,6 +30,12 @@ tracked beats (K beats, 50 fps frame indices) with two kinds of evidence:
   slid onto the off-beats and back, or dropped or doubled a beat) the count of beats itself is
   not to be trusted, so a restart there costs only :data:`LOG_RESTART_GLITCH` (about one bar of
   evidence): without it the bars after each slip stayed one beat off for many bars.
+- A network sure of its downbeats keeps them: where BeatNet's mean downbeat activation at the
+  downbeats of its own best bar path is at least :data:`NET_CONFIDENT`
+  (:func:`network_confidence`), the bar phase comes from its evidence alone; the harmony and
+  the backbeat still decide the meter. On real recordings the harmony and the backbeat moved
+  right downbeats by two beats where the network was sure; on generated hard songs, built to
+  mislead it, the network is never that sure (docs/music.md).
 - Duple: when the network says 2 beats per bar and the meter test does not say 3, the beats are
   grouped in 4 when the 4-beat downbeats clearly beat the half-bar beats (:data:`DUPLE_MARGIN`:
   a 4/4 song with a strong backbeat, or 2/4 music whose measures audibly pair up); otherwise 2

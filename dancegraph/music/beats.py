@@ -1,76 +1,33 @@
 """Beats, downbeats, meter and tempo of a song: ``track_beats(y, sr) -> BeatTracking``.
 
-Method (``method='auto'``, BeatNet when its weights are installed):
-  the activations of BeatNet's three CRNN models averaged (:mod:`dancegraph.music.beatnet`),
-  decoded by the bar-pointer model (:mod:`dancegraph.music.barpointer`) over meters 2, 3 and 4,
-  with bar restarts allowed between sections so the downbeat phase can change. Then the votes
-  (``vote=True``):
-  - a dotted pulse: when the onsets repeat far more strongly at 2:3 or 3:2 of the decoded
-    tempo than at it (:func:`dotted_pulse`), the decoder held the song's pulse at 3:2 (a
-    syncopated bass, off-beat drums); it decodes again with its tempo held to that level or
-    its double, whichever path is likelier (warning ``beat_level_corrected``).
-  - one tempo octave: a grid that jumps between two tempo octaves, each held for a good part
-    of the song (:func:`octave_switch`), is decoded again at one of them, the likelier path
-    (warning ``beat_level_unified``); a ritardando, which glides, is left alone.
-  - twice the tactus, decided before the mends, on the decoder's grid: when nothing sounds
-    between the tracked beats (:func:`subdivision_strength`) they are the music's eighths; every
-    other beat is kept, the half that the notes, BeatNet's beat activation and the snare-band
-    noise onsets prefer and whose bars are the clearer (:func:`half_beat_parity`), and the meter
-    is regrouped without the decoder's count of eighths as a prior (warning ``beats_halved``).
-    The mends below then work on beats: at the eighth level "half a beat" would be a sixteenth
-    (an eighth grid that slid by one eighth is, once halved, a half-beat slip the slip mend puts
-    back).
-  - swung off-beats: a grid on the swung off-beats (the next onset comes before the middle of
-    its beat, which swing never does), or a section between slips that sits there while the
-    rest of the grid swings the other way, is moved onto the beat
-    (:func:`mend_swing_off_beats`, warning ``beat_swing_mended``).
-  - half-beat slips: sections whose beats BeatNet put on the off-beats (a grid that slips by
-    half a beat and back at a steady tempo) are moved back where the librosa tracker agrees
-    (:func:`mend_half_beat_slips`, warning ``beat_slip_mended``).
-  - a whole grid on the straight off-beats: moved half a beat when the pitched onsets and the
-    onset strength clearly prefer the beats half a beat later (:func:`mend_off_beat_grid`,
-    warning ``beat_phase_shifted``).
-  - bar grouping (:mod:`dancegraph.music.bargroup`): the meter from bar-length self-similarity
-    and the bar phase from a beat-level bar-pointer model on BeatNet's downbeat evidence plus
-    the harmonic change into each beat less the backbeat (snare-band noise onsets), with
-    warnings ``meter_regrouped`` /
-    ``downbeat_rephased``. BeatNet leans to 4/4 and follows off-beat accents; repetition and
-    chords do not. At beats a mend moved, BeatNet's downbeat activation (about its own grid)
-    is left out and the harmony decides.
-  - half the tactus: a grid under ``SPLIT['max_bpm']`` with something sounding between its
-    beats (in the middle: swung eighths there are a slow song's), grouped in 2-beat bars
-    (whose two beats the bar grouping found alike) or in 4-beat
-    bars whose third beat is marked almost as strongly as their first
-    (:func:`~dancegraph.music.bargroup.half_bar_contrast` under ``SPLIT['max_contrast']``),
-    counts the half notes of a fast song: every beat interval is split in two
-    (:func:`split_beats`) and the bars regrouped without the decoder's meter as a prior
-    (warning ``beats_split``). Generated 150-180 BPM songs that both the network and the
-    decoder counted at half tempo: contrast 0.0-1.9 (median 0.66); songs tracked at their own
-    81-95 BPM: 0.4-4.6 (5th percentile 1.5, median 3.1). A fast waltz counted at half tempo
-    comes in 3-beat bars that hold two bars of 3, the second starting half-way through the
-    second tracked beat: on the split grid the music repeats after 3 beats as closely as after
-    6 and the harmony changes there almost as much as at the bar's start (both, also on a
-    halved grid: the halving took every other beat of a waltz without eighths). Generated
-    154-171 BPM waltzes at half tempo (6): repeat gap -0.23 to -0.07, harmony contrast
-    0.17-0.86; 125 waltzes tracked at their own 70-100 BPM: 4 with a repeat gap under 0
-    (-0.18 to -0.00), each with a harmony contrast of 1.04 or more, 19 with a contrast under
-    1.0, each with a repeat gap of +0.16 or more (:func:`_two_bars_per_bar`).
-  - beats: the librosa tracker's agreement (beat F-measure at 70 ms, or a related metrical
-    level) goes into the confidence.
-  - where the music sounds: beats before the first onset or after the last (the decoder counts
-    on through a final ring-out and trailing silence) are dropped (:func:`within_sound`;
-    ``evidence['beats_outside_sound']``).
-Fallback (``method='librosa'``): used when the BeatNet weights are not installed (warning
-  ``beatnet_weights_missing``): ``librosa.beat.beat_track`` on the onset envelope
-  and a global bar phase and meter (3 or 4) chosen Gainza-style from chroma change, bass onsets
-  and onset strength at the beats (on the generated set this is right on all 52 songs' meter;
-  bar self-similarity on librosa's beats was not: 50 of 52).
-No usable beat: ``AudioError(code='no_beat')`` — for silence, noise, speech, birdsong, a steady
-  tone: inputs whose beat evidence (activation at the decoded beats against its mean, its
-  periodicity at the beat period, regularity of the intervals) is below the thresholds in
-  :data:`NO_BEAT`. When BeatNet says "no beat" the librosa fallback is not asked.
+An explicit pipeline over one parameters object (:class:`BeatParams`):
 
-All times in seconds from the start of ``y``. Rates: ``y`` at any rate; BeatNet works at
+1. :func:`beat_evidence`: checks the audio (length, silence), raises quiet input to a mastered
+   level, and computes what every step reads (:class:`Evidence`): the activations of BeatNet's
+   CRNN models averaged (:mod:`dancegraph.music.beatnet`) and the spectral curves (onset
+   strength, chroma above the bass, bass and snare-band onsets).
+2. The bar-pointer decoder (:mod:`dancegraph.music.barpointer`) over meters 2, 3 and 4, bar
+   restarts allowed between sections; then the no-beat test (:func:`_usable`: the pulse
+   strength of the activation; a faint one passes with a ``weak_pulse`` warning).
+3. The steps of :data:`STEPS`, in that order, each a function from the grid and the evidence
+   to a new grid and its warnings, each switched by name in ``BeatParams.steps``
+   (:data:`DEFAULT_STEPS` by default): ``dotted_pulse`` (decode again at the song's pulse,
+   ``beat_level_corrected``), ``one_octave`` (decode again at one tempo octave,
+   ``beat_level_unified``), ``halve`` (every other beat of a grid with nothing between its
+   beats, ``beats_halved``), ``swing`` (``beat_swing_mended``), ``slips``
+   (``beat_slip_mended``), ``off_beat_grid`` (``beat_phase_shifted``), ``group`` (meter and bar
+   phase, :mod:`dancegraph.music.bargroup`: ``meter_regrouped``, ``downbeat_rephased``),
+   ``split`` (``beats_split``) and ``within_sound`` (beats where the music sounds). What each
+   does to real recordings and to generated songs, and why some are off by default:
+   docs/music.md.
+4. Tempo from the beats with its metrical alternatives (:mod:`dancegraph.music.tempo`) and a
+   confidence that the librosa tracker's agreement raises.
+
+Fallback (``method='librosa'``, or BeatNet's weights missing: warning
+``beatnet_weights_missing``): ``librosa.beat.beat_track`` on the onset envelope and a global
+bar phase and meter (3 or 4) from chroma change, bass onsets and onset strength at the beats.
+No usable beat: ``AudioError(code='no_beat')`` — silence, noise, speech, birdsong, a steady
+tone. All times in seconds from the start of ``y``; ``y`` at any rate, BeatNet works at
 22,050 Hz, 50 frames per second.
 """
 
