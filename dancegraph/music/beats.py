@@ -993,33 +993,37 @@ class Grid:
 StepFn = Callable[[Grid, Evidence, "BeatParams"], tuple[Grid, list[str]]]
 
 
+def _redecoded(
+    grid: Grid, ev: Evidence, params: BeatParams, bpm: float | None, message: str
+) -> tuple[Grid, list[str]]:
+    """The grid decoded again at ``bpm`` (:func:`_decode_at_level`; unchanged for None or where
+    that fails), with ``message`` as its warning, ``{new}`` formatted with the new tempo."""
+    again = None if bpm is None else _decode_at_level(ev, params, bpm)
+    if again is None:
+        return grid, []
+    return Grid.from_decoded(again), [message.format(new=tempo_from_beats(again.times)[0])]
+
+
 def _dotted_pulse_step(grid: Grid, ev: Evidence, params: BeatParams) -> tuple[Grid, list[str]]:
     """Decode again where the decoder held a dotted pulse of the song (:func:`dotted_pulse`)."""
     pulse = dotted_pulse(grid.decoded, ev.spec.onset_env)
-    again = None if pulse is None else _decode_at_level(ev, params, pulse)
-    if again is None:
-        return grid, []
-    note = (
+    message = (
         f"beat_level_corrected: the tracked beat at {tempo_from_beats(grid.decoded)[0]:.1f} BPM "
-        f"was a dotted pulse (3:2) of the song's, whose onsets repeat at {pulse:.1f} BPM; decoded "
-        f"again at that level or its double: {tempo_from_beats(again.times)[0]:.1f} BPM"
+        f"was a dotted pulse (3:2) of the song's, whose onsets repeat at {pulse or 0:.1f} BPM; "
+        "decoded again at that level or its double: {new:.1f} BPM"
     )
-    return Grid.from_decoded(again), [note]
+    return _redecoded(grid, ev, params, pulse, message)
 
 
 def _one_octave_step(grid: Grid, ev: Evidence, params: BeatParams) -> tuple[Grid, list[str]]:
     """Decode again at one level a grid that jumps between two tempo octaves
     (:func:`octave_switch`)."""
-    slow = octave_switch(grid.decoded)
-    again = None if slow is None else _decode_at_level(ev, params, slow)
-    if again is None:
-        return grid, []
-    note = (
+    slow = octave_switch(grid.decoded) or 0.0
+    message = (
         f"beat_level_unified: the decoder counted some sections at twice the tempo of others "
-        f"({slow:.1f} and {2 * slow:.1f} BPM); decoded again at one level: "
-        f"{tempo_from_beats(again.times)[0]:.1f} BPM"
+        f"({slow:.1f} and {2 * slow:.1f} BPM); decoded again at one level: {{new:.1f}} BPM"
     )
-    return Grid.from_decoded(again), [note]
+    return _redecoded(grid, ev, params, slow or None, message)
 
 
 def _halve_step(grid: Grid, ev: Evidence, params: BeatParams) -> tuple[Grid, list[str]]:
