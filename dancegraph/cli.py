@@ -73,6 +73,13 @@ def _add_analyze(sub) -> None:
         "--json", action="store_true", help="print the full analysis (default: a summary)"
     )
     p.add_argument(
+        "--tempo-range",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="a dance style's tempo range (BPM): the bars count the octave that fits it",
+    )
+    p.add_argument(
         "--jsonl",
         action="store_true",
         help="one JSON object per line and file, with its path; a file that fails gives its "
@@ -85,13 +92,13 @@ def _add_analyze(sub) -> None:
         if not args.jsonl:
             if len(args.audio) > 1:
                 p.error("several files need --jsonl")
-            result = analyze(args.audio[0])
+            result = analyze(args.audio[0], tempo_range=args.tempo_range)
             _print_json(result.to_dict() if args.json else result.summary())
             return 0
         failed = 0
         for path in args.audio:  # one process: the models and kernels load once
             try:
-                result = analyze(path)
+                result = analyze(path, tempo_range=args.tempo_range)
                 line = {"path": path, **(result.to_dict() if args.json else result.summary())}
             except DanceGraphError as exc:
                 failed += 1
