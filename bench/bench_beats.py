@@ -24,16 +24,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from dancegraph.errors import AudioError  # noqa: E402
-from dancegraph.music import barpointer  # noqa: E402
-from dancegraph.music.beats import beat_f_measure, track_beats, warm_up  # noqa: E402
+from dancegraph.music.beats import (  # noqa: E402
+    BEATNET_1_1_3,
+    beat_f_measure,
+    track_beats,
+    warm_up,
+)
 from dancegraph.music.decode import load_audio  # noqa: E402
 from dancegraph.music.generator import generate_song  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 
 TRACKERS = {
     "default": {},
-    "beatnet-1.1.3": {"models": (1,), "params": barpointer.MADMOM, "vote": False},
-    "librosa": {"method": "librosa", "vote": False},
+    "beatnet-1.1.3": {"params": BEATNET_1_1_3},
+    "librosa": {"method": "librosa"},
 }
 
 
@@ -117,7 +121,7 @@ def bench_cc() -> None:
             ref_path = shared_dir() / "reference" / "beatnet" / "vibe_ace.npz"
             if ref_path.is_file():
                 ref = np.load(ref_path)["beats"]
-                one = track_beats(y, sr, models=(1,), params=barpointer.MADMOM, vote=False)
+                one = track_beats(y, sr, params=BEATNET_1_1_3)
                 same = len(one.beats) == len(ref) and np.allclose(one.beats, ref[:, 0])
                 print(
                     f"  vs BeatNet 1.1.3 reference: default beat F {beat_f_measure(ref[:, 0], res.beats):.3f}, "

@@ -98,19 +98,50 @@ def _add_version(sub) -> None:
 
 def _add_analyze(sub) -> None:
     p = sub.add_parser(
-        "analyze", help="analyse a song: beats, meter, bars, phrases, per-bar features"
+        "analyze", help="analyse songs: beats, meter, bars, phrases, per-bar features"
     )
-    p.add_argument("audio", help="the audio file (wav, flac, ogg, mp3, ...)")
+    p.add_argument("audio", nargs="+", help="audio files (wav, flac, ogg, mp3, ...)")
     p.add_argument(
         "--json", action="store_true", help="print the full analysis (default: a summary)"
     )
+    p.add_argument(
+        "--tempo-range",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="a dance style's tempo range (BPM): the bars count the octave that fits it",
+    )
+    p.add_argument(
+        "--jsonl",
+        action="store_true",
+        help="one JSON object per line and file, with its path; a file that fails gives its "
+        "error code and the rest go on (exit status 2 when any failed)",
+    )
 
-    def run(args) -> None:
+    def run(args) -> int:
         from dancegraph.music.analysis import analyze
 
         _warm_kernels("dancegraph.music.beats")
-        result = analyze(args.audio)
-        print_json(result.to_dict() if args.json else result.summary())
+        if not args.jsonl:
+            if len(args.audio) > 1:
+                p.error("several files need --jsonl")
+            result = analyze(args.audio[0], tempo_range=args.tempo_range)
+            print_json(result.to_dict() if args.json else result.summary())
+            return 0
+        failed = 0
+        for path in args.audio:  # one process: the models and kernels load once
+            try:
+                result = analyze(path, tempo_range=args.tempo_range)
+                line = {"path": path, **(result.to_dict() if args.json else result.summary())}
+            except DanceGraphError as exc:
+                failed += 1
+                line = {"path": path, "error": exc.to_dict()}
+            except Exception as exc:  # a batch goes on past a file the library did not expect
+                failed += 1
+                line = {"path": path, "error": {"code": "analysis_failed", "message": str(exc)}}
+            sys.stdout.write(json.dumps(line, default=str) + "\n")
+            sys.stdout.flush()
+        return 2 if failed else 0
 
     p.set_defaults(func=run)
 

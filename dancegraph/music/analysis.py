@@ -49,7 +49,9 @@ class MusicAnalysis:
     bars of the module's bar rule. ``phrases``: ``{label, occurrence, start_bar, end_bar}``
     (end exclusive, occurrence from 0); ``tags`` per bar ``{label, occurrence, index,
     meter_id}``; ``signature_scores`` (B, 13) and ``signature_topk`` (B, 3) index
-    ``COMMON_SIGNATURES``; ``bar_onset_rms`` (B, 2, 200).
+    ``COMMON_SIGNATURES``; ``bar_onset_rms`` (B, 2, 200). ``grid_octave``: ``x1``, or ``x2`` /
+    ``x1/2`` where a dance style's tempo range (``analyze(..., tempo_range=)``) made the beats,
+    bars and tempo count twice or half the tracked tempo (warning ``grid_octave``).
 
     Optional, per learned model (keyed by the model file's sha256, added where the audio is at
     hand by ``embed.learned.add_music_terms``, absent from ``to_dict`` when empty so the cached
@@ -73,6 +75,7 @@ class MusicAnalysis:
     bar_onset_rms: np.ndarray
     method: str
     warnings: list[str] = field(default_factory=list)
+    grid_octave: str = "x1"
     learned_style: dict[str, np.ndarray] = field(default_factory=dict)
     learned_topk: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -108,6 +111,7 @@ class MusicAnalysis:
             "bar_onset_rms": r(self.bar_onset_rms),
             "method": self.method,
             "warnings": list(self.warnings),
+            "grid_octave": self.grid_octave,
         }
         if self.learned_style:
             out["learned_style"] = {k: r(v) for k, v in self.learned_style.items()}
@@ -141,6 +145,7 @@ class MusicAnalysis:
             bar_onset_rms=a("bar_onset_rms", (2, 200)),
             method=str(d.get("method", "")),
             warnings=list(d.get("warnings", [])),
+            grid_octave=str(d.get("grid_octave", "x1")),
             learned_style={
                 str(k): np.asarray(v, dtype=np.float32).reshape(-1, 32)
                 for k, v in (d.get("learned_style") or {}).items()
@@ -224,6 +229,44 @@ def four_beat_bars(
     return np.asarray(bars), np.stack(grid), warnings
 
 
+def fit_tempo_range(
+    beats: np.ndarray, positions: np.ndarray, meter: int, tempo_range: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray, int, str, list[str]]:
+    """The beat grid at the tempo octave that fits a dance style's ``tempo_range`` (lo, hi) BPM.
+
+    ``beats`` (N,) s and ``positions`` (N,) (1 = downbeat) in bars of ``meter``. A tracked tempo
+    outside the range whose double lies inside is split (every interval halved, bars of 4 or 3
+    of the new beats: :func:`~dancegraph.music.beats.split_beats`); one whose half lies inside
+    keeps every other beat from the first downbeat (bars of 4 become bars of 2 beats; 2 and 3
+    are not halved). Otherwise the tracker's level stays: the networks count it steadily, and a style's
+    range only picks the octave the dance bars count. Returns (beats, positions, meter, octave
+    ``x1`` | ``x2`` | ``x1/2``, warnings).
+    """
+    from dancegraph.music.beats import split_beats
+    from dancegraph.music.tempo import tempo_from_beats
+
+    lo, hi = tempo_range
+    bpm = tempo_from_beats(beats)[0]
+    if bpm <= 0 or lo <= bpm <= hi:
+        return beats, positions, meter, "x1", []
+    if lo <= 2 * bpm <= hi:
+        new, new_pos = split_beats(beats, positions, meter)
+        octave, new_meter = "x2", 3 if meter == 3 else 4
+    elif lo <= bpm / 2 <= hi and meter == 4:
+        down = np.flatnonzero(positions == 1)
+        first = int(down[0]) if len(down) else 0
+        keep = (np.arange(len(beats)) - first) % 2 == 0
+        new, new_pos = beats[keep], (np.asarray(positions)[keep] - 1) // 2 + 1
+        octave, new_meter = "x1/2", 2
+    else:
+        return beats, positions, meter, "x1", []
+    note = (
+        f"grid_octave: the bars count {octave} the tracked tempo ({bpm:.1f} -> "
+        f"{tempo_from_beats(new)[0]:.1f} BPM) to fit the style's {lo:.0f}-{hi:.0f} BPM"
+    )
+    return new, np.asarray(new_pos, dtype=np.int64), new_meter, octave, [note]
+
+
 def phrase_unit(meter: int) -> int:
     """Preferred phrase length in 4-beat bars: 4 measures where they fill whole bars (3/4: 3 bars),
     else 4 bars."""
@@ -235,13 +278,20 @@ def phrase_unit(meter: int) -> int:
     return bars if 2 <= bars <= 8 else 4
 
 
-def analyze(path_or_array: str | os.PathLike | np.ndarray, sr: int | None = None) -> MusicAnalysis:
+def analyze(
+    path_or_array: str | os.PathLike | np.ndarray,
+    sr: int | None = None,
+    *,
+    tempo_range: tuple[float, float] | None = None,
+) -> MusicAnalysis:
     """Analyse a song given as a file path or as samples.
 
     ``path_or_array``: an audio file (any format ``load_audio`` decodes) or samples ``(N,)`` /
     ``(C, N)`` (float in [-1, 1], or PCM integers) at ``sr`` Hz (required for arrays; ignored
-    for files, which are decoded at 22.05 kHz). Raises ``AudioError`` (codes of
-    ``load_audio``, ``no_beat`` when no 4-beat bar can be formed).
+    for files, which are decoded at 22.05 kHz). ``tempo_range``: a dance style's (lo, hi) BPM;
+    the beats and bars then count the octave of the tracked tempo that fits it
+    (:func:`fit_tempo_range`). Raises ``AudioError`` (codes of ``load_audio``, ``no_beat`` when
+    no 4-beat bar can be formed).
     """
     from dancegraph import jit
     from dancegraph.music.beats import track_beats  # the tracker loads torch: only when used
@@ -271,20 +321,31 @@ def analyze(path_or_array: str | os.PathLike | np.ndarray, sr: int | None = None
         y, _ = load_audio(path_or_array, sr=FEATURE_SR)
     duration = len(y) / FEATURE_SR
     bt = track_beats(y, FEATURE_SR)
-    bars, bar_beats, bar_warnings = four_beat_bars(bt.beats, bt.beat_positions, bt.meter, duration)
+    beats, positions, meter = bt.beats, bt.beat_positions, bt.meter
+    octave, tempo_bpm, warnings = "x1", float(bt.tempo_bpm), list(bt.warnings)
+    if tempo_range is not None:
+        beats, positions, meter, octave, notes = fit_tempo_range(
+            beats, positions, meter, tempo_range
+        )
+        if octave != "x1":
+            from dancegraph.music.tempo import tempo_from_beats
+
+            tempo_bpm = tempo_from_beats(beats)[0]
+            warnings += notes
+    bars, bar_beats, bar_warnings = four_beat_bars(beats, positions, meter, duration)
     if len(bars) == 0:
         raise AudioError("too few beats to form a single 4-beat bar", code="no_beat", field="audio")
     ff = frame_features(y, FEATURE_SR)
-    st = analyze_structure(ff, bars, unit=phrase_unit(bt.meter))
+    st = analyze_structure(ff, bars, unit=phrase_unit(meter))
     scores, topk, _ = song_signatures(ff, bar_beats)
     return MusicAnalysis(
         duration_s=duration,
-        tempo_bpm=float(bt.tempo_bpm),
+        tempo_bpm=float(tempo_bpm),
         tempo_confidence=float(bt.tempo_confidence),
-        meter=int(bt.meter),
-        beats=np.asarray(bt.beats, dtype=float),
-        beat_positions=np.asarray(bt.beat_positions, dtype=int),
-        downbeats=np.asarray(bt.downbeats, dtype=float),
+        meter=int(meter),
+        beats=np.asarray(beats, dtype=float),
+        beat_positions=np.asarray(positions, dtype=int),
+        downbeats=np.asarray(beats[positions == 1], dtype=float),
         bars=bars,
         bar_beats=bar_beats,
         phrases=st.phrases,
@@ -293,5 +354,6 @@ def analyze(path_or_array: str | os.PathLike | np.ndarray, sr: int | None = None
         signature_topk=topk,
         bar_onset_rms=bar_onset_rms(ff, bars),
         method=str(bt.method),
-        warnings=list(bt.warnings) + bar_warnings,
+        warnings=warnings + bar_warnings,
+        grid_octave=octave,
     )

@@ -30,6 +30,12 @@ tracked beats (K beats, 50 fps frame indices) with two kinds of evidence:
   slid onto the off-beats and back, or dropped or doubled a beat) the count of beats itself is
   not to be trusted, so a restart there costs only :data:`LOG_RESTART_GLITCH` (about one bar of
   evidence): without it the bars after each slip stayed one beat off for many bars.
+- A network sure of its downbeats keeps them: where BeatNet's mean downbeat activation at the
+  downbeats of its own best bar path is at least :data:`NET_CONFIDENT`
+  (:func:`network_confidence`), the bar phase comes from its evidence alone; the harmony and
+  the backbeat still decide the meter. On real recordings the harmony and the backbeat moved
+  right downbeats by two beats where the network was sure; on generated hard songs, built to
+  mislead it, the network is never that sure (docs/music.md).
 - Duple: when the network says 2 beats per bar and the meter test does not say 3, the beats are
   grouped in 4 when the 4-beat downbeats clearly beat the half-bar beats (:data:`DUPLE_MARGIN`:
   a 4/4 song with a strong backbeat, or 2/4 music whose measures audibly pair up); otherwise 2
@@ -116,6 +122,7 @@ __all__ = [
     "harmonic_change",
     "lag_distance",
     "meter_distances",
+    "network_confidence",
     "peak_near",
     "phase_viterbi",
     "restart_costs",
@@ -146,6 +153,9 @@ HARMONY_WEIGHT = 1.5
 #: downbeat evidence, subtracted: the backbeat falls on beats 2 and 4 (3 in half time), never
 #: on the downbeat — what marks the bar where the kick does not (off-beat drums)
 BACKBEAT_WEIGHT = 0.75
+#: the network's mean downbeat activation at its own downbeats above which its bar phase stands
+#: (:func:`network_confidence`): the harmony and the backbeat do not outvote a network this sure
+NET_CONFIDENT = 0.75
 #: mean downbeat evidence (z-units) by which 4-beat downbeats must beat the half-bar beats
 DUPLE_MARGIN = 0.3
 #: log probability of restarting the bar at a beat (about 10 nats: several bars of evidence)
@@ -265,6 +275,7 @@ def downbeat_evidence(
     chroma: np.ndarray,
     tracked: np.ndarray | None = None,
     snare_onset: np.ndarray | None = None,
+    network_only: bool = False,
 ) -> np.ndarray:
     """(K,) downbeat evidence per beat: z(logit of the peak BeatNet downbeat activation (T, 2)
     within ±2 frames) + :data:`HARMONY_WEIGHT` z(harmonic change into the beat) - with
@@ -274,6 +285,7 @@ def downbeat_evidence(
     ``tracked`` (K,) bool: the beats the network itself tracked (default all). The network's
     downbeat activation belongs to its own beat grid, so at beats a mend moved (onto the other
     half of the beat) it says nothing: there the term is 0 (its mean) and the harmony decides.
+    ``network_only``: the network's term alone (no harmony, no backbeat).
     """
     from scipy.ndimage import uniform_filter1d
 
@@ -283,10 +295,32 @@ def downbeat_evidence(
     net = np.zeros(len(frames))
     if own.sum() > 1:
         net[own] = zscore(logit[own])
+    if network_only:
+        return net - uniform_filter1d(net, LOCAL_BEATS, mode="nearest")
     e = net + HARMONY_WEIGHT * zscore(harmonic_change(chroma, frames))
     if snare_onset is not None:
         e = e - BACKBEAT_WEIGHT * zscore(peak_near(snare_onset, frames))
     return e - uniform_filter1d(e, LOCAL_BEATS, mode="nearest")
+
+
+def network_confidence(
+    act: np.ndarray,
+    frames: np.ndarray,
+    own: np.ndarray,
+    meter: int,
+    restarts: np.ndarray,
+    tracked: np.ndarray | None = None,
+) -> float:
+    """How sure the network is of its downbeats: BeatNet's mean downbeat activation (``act``
+    (T, 2), peak within ±2 frames of ``frames`` (K,)) at the downbeats of the bar path its own
+    evidence ``own`` (K,) (:func:`downbeat_evidence` with ``network_only``) takes in ``meter``,
+    over the beats it tracked (``tracked`` (K,) bool, default all). 0..1; 0.0 without such a
+    downbeat."""
+    path = phase_viterbi(own, meter, restarts)
+    at = (path == 1) & (np.ones(len(frames), dtype=bool) if tracked is None else tracked)
+    if not at.any():
+        return 0.0
+    return float(peak_near(act[:, 1], frames)[at].mean())
 
 
 def half_bar_contrast(evidence: np.ndarray, positions: np.ndarray) -> float:
@@ -450,12 +484,15 @@ def group_beats(
             meter = 4
     grouping = 4 if meter == 2 else meter
     new = paths[grouping] if grouping in paths else phase_viterbi(e, grouping, restarts)
+    # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
+    if meter == 2 and half_bar_contrast(e, new) > DUPLE_MARGIN:
+        meter = 4
+    # a network sure of its downbeats keeps them: the harmony and the backbeat do not outvote it
+    own = downbeat_evidence(act, frames, chroma, tracked, network_only=True)
+    if network_confidence(act, frames, own, grouping, restarts, tracked) >= NET_CONFIDENT:
+        new = phase_viterbi(own, grouping, restarts)
     if meter == 2:
-        # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
-        if half_bar_contrast(e, new) > DUPLE_MARGIN:
-            meter = 4
-        else:
-            new = (new - 1) % 2 + 1
+        new = (new - 1) % 2 + 1
     notes = []
     if meter != decoded:
         notes.append(

@@ -9,7 +9,13 @@ import pytest
 
 from dancegraph.cli import main
 from dancegraph.errors import AudioError
-from dancegraph.music.analysis import MusicAnalysis, analyze, four_beat_bars, phrase_unit
+from dancegraph.music.analysis import (
+    MusicAnalysis,
+    analyze,
+    fit_tempo_range,
+    four_beat_bars,
+    phrase_unit,
+)
 from dancegraph.music.generator import generate, random_config, write_song
 
 
@@ -141,6 +147,51 @@ def test_cli_analyze(analysed, capsys, tmp_path):
     bad.write_text("this is not audio\n" * 50)
     assert main(["analyze", str(bad)]) == 2
     assert "audio_undecodable" in capsys.readouterr().err
+
+
+def test_cli_analyze_many_files_as_json_lines(analysed, capsys, tmp_path):
+    """One process, one line per file with its path; an unreadable file gives its error code
+    and the files after it are still analysed."""
+    _, wav, a = analysed
+    bad = tmp_path / "notes.mp3"
+    bad.write_text("this is not audio\n" * 50)
+    missing = tmp_path / "missing.wav"
+    assert main(["analyze", str(wav), str(bad), str(missing), str(wav), "--jsonl"]) == 2
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["path"] for x in lines] == [str(wav), str(bad), str(missing), str(wav)]
+    assert lines[0]["n_bars"] == a.n_bars and lines[0] == lines[3]
+    assert lines[1]["error"]["code"] == "audio_undecodable"
+    assert lines[2]["error"]["code"].startswith("audio_")
+    assert main(["analyze", str(wav), "--jsonl", "--json"]) == 0
+    (full,) = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert full["path"] == str(wav) and len(full["bars"]) == a.n_bars
+    with pytest.raises(SystemExit):  # several files only as JSON lines
+        main(["analyze", str(wav), str(wav)])
+
+
+def test_a_style_tempo_range_picks_the_octave_of_the_bar_grid(analysed):
+    """The tracker's level stays unless a style's range holds its double or half: then the beats
+    and bars count that octave, and the analysis says so (field and warning)."""
+    beats = np.arange(0.0, 20.0, 0.6)  # 100 BPM, 4/4 from the first beat
+    pos = np.arange(len(beats)) % 4 + 1
+    same = fit_tempo_range(beats, pos, 4, (90.0, 130.0))
+    assert same[0] is beats and same[3] == "x1" and not same[4]
+    dbl, dpos, meter, octave, notes = fit_tempo_range(beats, pos, 4, (160.0, 220.0))
+    assert octave == "x2" and meter == 4 and len(dbl) == 2 * len(beats) - 1
+    assert np.allclose(dbl[dpos == 1], beats[(pos == 1) | (pos == 3)])
+    assert notes[0].startswith("grid_octave")
+    half, hpos, meter, octave, _ = fit_tempo_range(beats, pos, 4, (40.0, 60.0))
+    assert octave == "x1/2" and meter == 2 and np.allclose(half, beats[::2])
+    assert np.allclose(half[hpos == 1], beats[pos == 1])
+    assert fit_tempo_range(beats, pos, 3, (40.0, 60.0))[3] == "x1"  # a waltz is not halved
+    song, wav, a = analysed
+    lo, hi = 1.8 * a.tempo_bpm, 2.2 * a.tempo_bpm
+    fast = analyze(wav, tempo_range=(lo, hi))
+    assert fast.grid_octave == "x2" and lo <= fast.tempo_bpm <= hi
+    assert fast.n_bars >= 2 * a.n_bars - 2
+    assert any(w.startswith("grid_octave") for w in fast.warnings)
+    assert MusicAnalysis.from_dict(fast.to_dict()).grid_octave == "x2"
+    assert a.grid_octave == "x1"
 
 
 def test_array_input_needs_a_rate():

@@ -1,0 +1,269 @@
+"""Beat, downbeat, meter and tempo accuracy on real recordings with human annotations, per genre,
+for the default analysis and for each step of the beat pipeline switched off (or, for the steps
+off by default, on).
+
+Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]``; the
+folder comes from ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and the benchmark skips (exit 0)
+when neither names one. The recordings are copyrighted: they live outside the repository, are
+never committed, and only the numbers go to docs/music.md.
+
+Folder layout: ``audio/<name>.wav`` (any format ``load_audio`` reads) and ``beats/<name>.beats``
+or, for GTZAN, ``beats/gtzan_<genre>_<id>.beats`` beside ``audio/<genre>.<id>.wav`` (the GTZAN
+clips of ``zenny126/py`` with the annotations of ``TempoBeatDownbeat/gtzan_tempo_beat``). A
+``.beats`` line is ``time beat-in-bar`` (1 = downbeat) or ``time bar.beat`` (Ballroom);
+annotations past the end of the audio are dropped; a file without beat-in-bar numbers is
+skipped. The genre is the name up to its first ``.`` or ``_``.
+
+Metrics: beat F and downbeat F at ±70 ms (``beats.beat_f_measure``); meter accuracy (the
+annotated beats per bar; a 2/4 piece reported in 4 counts as right: the dance bar is 4 beats);
+tempo-octave errors (the reported tempo more than 8 % off the annotated one, 60 / median
+interval: counted at x2, x1/2 or other); false ``no_beat`` (every file is music). Chance rows:
+the default's beats moved half a beat, and its downbeats moved one beat (the wrong phase at the
+right tempo). ``--held-out-last K`` keeps the last K files of each genre apart: the steps were
+chosen on the rest and are reported on both. ``--batch`` also times ``dancegraph analyze
+--jsonl`` over all the files in one process (wall seconds, and per 30 s of audio).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from dancegraph.errors import AudioError  # noqa: E402
+from dancegraph.music.beats import (  # noqa: E402
+    BEATNET_1_1_3,
+    DEFAULT_STEPS,
+    STEPS,
+    BeatParams,
+    Evidence,
+    beat_evidence,
+    beat_f_measure,
+    track_evidence,
+    warm_up,
+)
+from dancegraph.music.decode import load_audio  # noqa: E402
+
+OCTAVE_TOL = 0.08
+
+
+@dataclass
+class Clip:
+    """One annotated recording: beat times (K,) s, their beat-in-bar numbers (K,), the audio's
+    duration and its evidence (or the AudioError that refused it)."""
+
+    name: str
+    genre: str
+    beats: np.ndarray
+    positions: np.ndarray
+    duration_s: float
+    evidence: Evidence | AudioError
+    evidence_1: Evidence | AudioError  # BeatNet's model 1 alone (the BeatNet 1.1.3 row)
+    held_out: bool = False
+
+    @property
+    def downbeats(self) -> np.ndarray:
+        return self.beats[self.positions == 1]
+
+    @property
+    def meter(self) -> int:
+        return int(self.positions.max())
+
+    @property
+    def tempo_bpm(self) -> float:
+        return 60.0 / float(np.median(np.diff(self.beats)))
+
+
+def read_beats(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(times (K,), beat-in-bar (K,)) from a ``.beats`` file, or None without beat numbers."""
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    if not rows or any(len(r) < 2 for r in rows):
+        return None
+    times = np.array([float(r[0]) for r in rows])
+    marks = [float(r[1]) for r in rows]
+    # "9.3" is bar 9, beat 3 (Ballroom); "3" is beat 3 (GTZAN)
+    pos = np.array([round((m - np.floor(m)) * 10) if m != int(m) else int(m) for m in marks])
+    return times, pos.astype(np.int64)
+
+
+def _annotation(root: Path, audio: Path) -> Path | None:
+    own = root / "beats" / f"{audio.stem}.beats"
+    if own.is_file():
+        return own
+    gtzan = root / "beats" / f"gtzan_{audio.stem.replace('.', '_')}.beats"
+    return gtzan if gtzan.is_file() else None
+
+
+def load_clips(root: Path, held_out_last: int) -> list[Clip]:
+    """The annotated recordings of ``root``, their evidence computed once."""
+    clips: list[Clip] = []
+    for audio in sorted((root / "audio").iterdir()):
+        ann = _annotation(root, audio)
+        read = read_beats(ann) if ann else None
+        if read is None:
+            print(f"skipped {audio.name}: no beat-in-bar annotation")
+            continue
+        y, sr = load_audio(audio)
+        times, pos = read
+        keep = times <= len(y) / sr
+        evs: list[Evidence | AudioError] = []
+        for models in (BeatParams().models, BEATNET_1_1_3.models):
+            try:
+                evs.append(beat_evidence(y, sr, models=models))
+            except AudioError as exc:
+                evs.append(exc)
+        genre = re.split(r"[._]", audio.stem)[0]
+        clips.append(Clip(audio.stem, genre, times[keep], pos[keep], len(y) / sr, *evs))
+    for genre in {c.genre for c in clips}:
+        mine = [c for c in clips if c.genre == genre]
+        for c in mine[len(mine) - held_out_last :] if held_out_last else []:
+            c.held_out = True
+    return clips
+
+
+def score(clip: Clip, params: BeatParams) -> dict:
+    """One clip's metrics under ``params`` (a refused clip scores 0 and counts as no_beat)."""
+    try:
+        ev = clip.evidence if params.models == BeatParams().models else clip.evidence_1
+        if isinstance(ev, AudioError):
+            raise ev
+        bt = track_evidence(ev, params)
+    except AudioError:
+        return {"beat_f": 0.0, "down_f": 0.0, "meter": False, "octave": "none", "no_beat": True}
+    ratio = bt.tempo_bpm / clip.tempo_bpm
+    level = next(
+        (
+            name
+            for name, r in (("x1", 1.0), ("x2", 2.0), ("x1/2", 0.5))
+            if abs(ratio / r - 1) <= OCTAVE_TOL
+        ),
+        "other",
+    )
+    meter_ok = bt.meter == clip.meter or (clip.meter == 2 and bt.meter == 4)
+    half = np.r_[np.diff(bt.beats), np.median(np.diff(bt.beats))] / 2 if len(bt.beats) > 1 else 0
+    rotated = bt.beats[np.roll(bt.beat_positions, 1) == 1]
+    return {
+        "beat_f": beat_f_measure(clip.beats, bt.beats),
+        "down_f": beat_f_measure(clip.downbeats, bt.downbeats),
+        "meter": meter_ok,
+        "octave": level,
+        "no_beat": False,
+        "chance_beat_f": beat_f_measure(clip.beats, bt.beats + half),
+        "chance_down_f": beat_f_measure(clip.downbeats, rotated),
+    }
+
+
+def _summary(rows: list[dict]) -> str:
+    n = len(rows)
+    mean = lambda k: float(np.mean([r[k] for r in rows]))  # noqa: E731
+    octave = sum(r["octave"] != "x1" for r in rows)
+    return (
+        f"{n:>4} {mean('down_f'):7.3f} {mean('beat_f'):7.3f} {mean('meter'):6.3f}"
+        f" {100 * octave / n:6.1f} {sum(r['no_beat'] for r in rows):>7}"
+    )
+
+
+HEADER = f"{'':<28} {'n':>4} {'down F':>7} {'beat F':>7} {'meter':>6} {'oct %':>6} {'no_beat':>7}"
+
+
+def variants() -> dict[str, BeatParams]:
+    """The default, BeatNet 1.1.3, the decoder alone, and each step switched off (or on)."""
+    out = {
+        "default": BeatParams(),
+        "decoder alone (no step)": BeatParams(steps=frozenset()),
+        "BeatNet 1.1.3": BEATNET_1_1_3,
+    }
+    for name, _ in STEPS:
+        if name in DEFAULT_STEPS:
+            out[f"  - {name}"] = BeatParams().without(name)
+        else:
+            out[f"  + {name}"] = BeatParams().with_steps(name)
+    return out
+
+
+def run(clips: list[Clip]) -> None:
+    groups = {
+        "all": clips,
+        "dev": [c for c in clips if not c.held_out],
+        "held-out": [c for c in clips if c.held_out],
+    }
+    results = {label: [score(c, p) for c in clips] for label, p in variants().items()}
+    by_name = {c.name: i for i, c in enumerate(clips)}
+    for group, members in groups.items():
+        if not members:
+            continue
+        idx = [by_name[c.name] for c in members]
+        print(f"\n{group} ({len(members)} clips)\n{HEADER}")
+        for label, rows in results.items():
+            print(f"{label:<28} {_summary([rows[i] for i in idx])}")
+        base = [results["default"][i] for i in idx]
+        print(
+            f"{'chance (default moved)':<28} {len(base):>4}"
+            f" {np.mean([r.get('chance_down_f', 0) for r in base]):7.3f}"
+            f" {np.mean([r.get('chance_beat_f', 0) for r in base]):7.3f}"
+            "   (downbeats one beat late, beats half a beat late)"
+        )
+    print(f"\ndefault per genre\n{'genre':<28} {HEADER.strip()}")
+    default = results["default"]
+    for genre in sorted({c.genre for c in clips}):
+        rows = [default[i] for i, c in enumerate(clips) if c.genre == genre]
+        print(f"{genre:<28} {_summary(rows)}")
+    levels = [r["octave"] for r in default]
+    print(
+        "default tempo levels against the annotation: "
+        + ", ".join(f"{k} {levels.count(k)}" for k in ("x1", "x2", "x1/2", "other", "none"))
+    )
+    print(
+        "targets (issue 23): downbeat F >= 0.92, beat F >= 0.92, meter >= 0.95, "
+        "tempo-octave errors <= 5 %, no false no_beat"
+    )
+
+
+def run_batch(root: Path) -> None:
+    """Wall time of one ``dancegraph analyze --jsonl`` process over every audio file."""
+    files = sorted(str(p) for p in (root / "audio").iterdir())
+    seconds = 0.0
+    for f in files:
+        y, sr = load_audio(f)
+        seconds += len(y) / sr
+    cmd = [sys.executable, "-m", "dancegraph.cli", "analyze", *files, "--jsonl"]
+    t0 = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t0
+    lines = out.stdout.splitlines()
+    print(
+        f"\nbatch: {len(files)} files, {seconds / 60:.1f} min of audio, {len(lines)} lines, "
+        f"{wall:.1f} s wall in one process ({wall / (seconds / 30):.2f} s per 30 s of audio; "
+        "target: 100 files of 30 s in <= 60 s)"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", default=os.environ.get("DANCEGRAPH_REAL_MUSIC"))
+    ap.add_argument("--held-out-last", type=int, default=4, metavar="K")
+    ap.add_argument("--batch", action="store_true", help="also time a batch analyze")
+    args = ap.parse_args(argv)
+    root = Path(args.root) if args.root else None
+    if root is None or not (root / "audio").is_dir():
+        print("real-music benchmark skipped: no folder (--root or $DANCEGRAPH_REAL_MUSIC)")
+        return 0
+    warm_up()
+    clips = load_clips(root, args.held_out_last)
+    run(clips)
+    if args.batch:
+        run_batch(root)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
