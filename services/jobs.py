@@ -29,6 +29,7 @@ from sqlalchemy.orm import Session
 
 from dancegraph.errors import NotFoundError
 from dancegraph.store import ObjectStore, check_key
+from services.common.uploads import StoredAudio
 from services.models import (
     CANCELLED,
     FAILED,
@@ -95,16 +96,11 @@ def create_job(
     *,
     tenant_id: str,
     spec: dict[str, Any],
-    audio_key: str,
-    audio_sha256: str,
-    audio_filename: str = "",
-    audio_bytes: int = 0,
-    audio_format: str = "",
-    audio_duration_s: float | None = None,
+    audio: StoredAudio,
     idempotency_key: str | None = None,
     batch_id: str | None = None,
 ) -> tuple[Job, bool]:
-    """Insert a queued job; returns ``(job, created)``.
+    """Insert a queued job for the stored song ``audio``; returns ``(job, created)``.
 
     With an ``idempotency_key`` already used by this tenant, returns the existing job and
     ``created=False`` (also when two requests race: the unique constraint decides).
@@ -121,12 +117,12 @@ def create_job(
         stage="queued",
         progress=0.0,
         spec=spec,
-        audio_key=check_key(audio_key),
-        audio_sha256=audio_sha256,
-        audio_filename=audio_filename[:255],
-        audio_bytes=audio_bytes,
-        audio_format=audio_format,
-        audio_duration_s=audio_duration_s,
+        audio_key=check_key(audio.key),
+        audio_sha256=audio.sha256,
+        audio_filename=audio.filename[:255],
+        audio_bytes=audio.size,
+        audio_format=audio.container,
+        audio_duration_s=audio.duration_s,
         idempotency_key=idempotency_key,
         callback_url=str(callback) if callback else None,
         webhook_status=WEBHOOK_NONE,

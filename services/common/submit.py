@@ -100,12 +100,7 @@ def submit_job(
             session,
             tenant_id=tenant_id,
             spec=spec_dict,
-            audio_key=stored.key,
-            audio_sha256=stored.sha256,
-            audio_filename=stored.filename,
-            audio_bytes=stored.size,
-            audio_format=stored.container,
-            audio_duration_s=stored.duration_s,
+            audio=stored,
             idempotency_key=idempotency_key,
         )
     if not created:  # lost a race with the same key: the other request enqueued it
@@ -171,12 +166,7 @@ def submit_batch(
                 session,
                 tenant_id=tenant_id,
                 spec=spec_dict,
-                audio_key=s.key,
-                audio_sha256=s.sha256,
-                audio_filename=s.filename,
-                audio_bytes=s.size,
-                audio_format=s.container,
-                audio_duration_s=s.duration_s,
+                audio=s,
                 batch_id=batch.id,
             )
             rows.append(job)

@@ -25,7 +25,7 @@ from dancegraph.spec import check_json_value, parse_spec
 from dancegraph.store import InvalidKeyError, check_key
 from services import jobs
 from services.common.submit import check_callback, check_dataset
-from services.common.uploads import check_audio
+from services.common.uploads import StoredAudio, check_audio
 from services.config import Settings, get_settings
 from services.db import session_scope
 from services.models import Job, Tenant
@@ -124,12 +124,7 @@ def submit(
             session,
             tenant_id=tenant_id,
             spec=parsed.model_dump(mode="json"),
-            audio_key=stored.key,
-            audio_sha256=stored.sha256,
-            audio_filename=stored.filename,
-            audio_bytes=stored.size,
-            audio_format=stored.container,
-            audio_duration_s=stored.duration_s,
+            audio=stored,
             idempotency_key=idempotency_key,
         )
         if not created:
@@ -161,8 +156,9 @@ def _record_refusal(
             session,
             tenant_id=tenant_id,
             spec=_storable(spec),
-            audio_key="rejected",
-            audio_sha256="",
+            audio=StoredAudio(
+                "rejected", sha256="", size=0, filename="", container="", duration_s=None
+            ),
             idempotency_key=key,
         )
         if not created:

@@ -13,6 +13,7 @@ import pytest
 from sqlalchemy import update
 
 from services import db, jobs
+from services.common.uploads import StoredAudio
 from services.config import get_settings
 from services.models import Job, utcnow
 from services.worker import celery_app, enqueue, reaper, state
@@ -48,14 +49,20 @@ def _tenant() -> str:
         return tenant.id
 
 
+def _song(key: str) -> StoredAudio:
+    """A stored song record for ``key`` (content-addressed: its name is its sha256)."""
+    return StoredAudio(
+        key, key.rsplit("/", 1)[1], size=1, filename="song.wav", container="wav", duration_s=1.0
+    )
+
+
 def _job(tenant_id: str, **values) -> str:
     with db.session_scope() as session:
         job, _ = jobs.create_job(
             session,
             tenant_id=tenant_id,
             spec={"dataset": "demo"},
-            audio_key="blobs/sha256/00/" + "0" * 64,
-            audio_sha256="0" * 64,
+            audio=_song("blobs/sha256/00/" + "0" * 64),
         )
         job_id = job.id
     if values:
@@ -258,8 +265,7 @@ def test_reaper_sweeps_every_kind_of_leftover(embedded):
             session,
             tenant_id=tenant,
             spec={"dataset": "demo"},
-            audio_key=used_key,
-            audio_sha256=used_key.rsplit("/", 1)[1],
+            audio=_song(used_key),
         )
     store.put_bytes("jobs/j-dead/r-0123/alternatives/0.bvh", b"HIERARCHY")
     for path in (upload, tmp_file, store.path(orphan_key), store.path(used_key)):
