@@ -303,7 +303,7 @@ def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec)
     return render_path(
         lib.graph,
         ids,
-        analysis.bars,
+        analysis.bar_beats,
         EVAL_FPS,
         duration_s=float(analysis.duration_s),
         placements=placements,

@@ -15,10 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dancegraph.motion.stitch import frame_jumps
-
 #: Seams above this percentile of the library's frame-to-frame distribution are flagged.
 FLAG_PERCENTILE = 99.0
+
+
+def frame_jumps(positions: np.ndarray) -> np.ndarray:
+    """``(F-1, J)`` per-joint position change between consecutive frames (m)."""
+    return np.linalg.norm(np.diff(positions, axis=0), axis=-1)
 
 
 def frame_signals(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:

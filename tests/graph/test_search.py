@@ -13,6 +13,7 @@ from dancegraph.graph import _dp
 from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
 from dancegraph.graph.search import placed_motion, root_trajectory, search, structure_pairs
+from dancegraph.motion.retime import BEAT0
 from dancegraph.render import render_path
 from dancegraph.spec import Spec
 
@@ -37,12 +38,13 @@ def travel_graph():
     """Demo bars whose root travels 0.3 m per bar: groove along +x, pop along -x, step in place."""
     bars = demo_barset()
     root = bars.root.copy()
-    n = root.shape[1]
-    t = (np.arange(n) - bars.lead) / (n - bars.lead)
     sign = np.array(
         [{"groove": 1.0, "pop": -1.0, "step": 0.0}[bars.clips[c].split("_")[0]] for c in bars.clip]
     )
-    root[:, :, 0] += 0.3 * sign[:, None] * t[None, :]
+    for i in range(len(bars.clip)):  # t: 0 at the bar's downbeat, 1 at its closing one
+        a, b = bars.ptr[i], bars.ptr[i + 1]
+        t = (np.arange(b - a) - bars.beats[i, BEAT0]) / (bars.duration[i] * bars.fps[i])
+        root[a:b, 0] += 0.3 * sign[i] * t
     return _graph(dataclasses.replace(bars, root=root))
 
 
