@@ -9,7 +9,6 @@ from dancegraph.motion import quat
 from dancegraph.motion.fk import (
     canonical_positions,
     fk_arrays,
-    forward_kinematics,
     require_canonical,
 )
 from dancegraph.motion.skeleton import Motion, Skeleton
@@ -77,6 +76,13 @@ def foot_contacts(
             c = binary_closing(contacts[:, side], structure, border_value=0) | contacts[:, side]
             contacts[:, side] = binary_opening(c, structure)
     return contacts
+
+
+def _leg_joints(skeleton: Skeleton) -> np.ndarray:
+    """The joints of the feet (``foot_points``) and every joint above them."""
+    keys = [k for pair in _FOOT_KEYS for k in pair]
+    require_canonical(skeleton, keys)
+    return np.array([skeleton.index(skeleton.canonical[k]) for k in keys])
 
 
 def _segments(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -200,7 +206,8 @@ def clean_foot_skate(
     """
     sk = motion.skeleton
     fps = motion.fps
-    pos, world = forward_kinematics(motion)
+    legs = _leg_joints(sk)  # forward kinematics of the legs is all this needs
+    pos, world = fk_arrays(sk, motion.root_positions, motion.rotations, legs)
     if contacts is None:
         contacts = foot_contacts(pos, fps, sk, world)
     contacts = np.asarray(contacts, dtype=bool)
@@ -246,7 +253,7 @@ def clean_foot_skate(
             quat.conjugate(new_knee_w), world[active, ankle_j]
         )
     cleaned = Motion(sk, fps, motion.root_positions.copy(), rotations)
-    pos2, world2 = fk_arrays(sk, cleaned.root_positions, rotations)
+    pos2, world2 = fk_arrays(sk, cleaned.root_positions, rotations, legs)
     pts2 = foot_points(pos2, sk, world2)
     before_speed, before_dist, after_speed, after_dist = [], [], [], []
     for side in range(2):

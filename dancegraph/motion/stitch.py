@@ -37,6 +37,8 @@ from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 CUT_BEATS = 1.0
 #: Largest acceleration (m/s²) an offset's decay may add to a body point.
 MAX_OFFSET_ACC = 6.0
+#: The cut search scores every COARSE-th frame of the window, then every frame near the best.
+COARSE = 3
 #: Seam distances closer than this count as equal: the cut nearer the bar line wins.
 TIE = 0.01
 #: Least and most decay length of an offset, seconds.
@@ -82,13 +84,14 @@ def seam_features(
     cos, sin = np.cos(yaw)[:, :, None], np.sin(yaw)[:, :, None]  # (S, W-2, 1)
     ox, oz = root[:, 1:-1, None, 0], root[:, 1:-1, None, 2]
 
-    def local(points: np.ndarray) -> np.ndarray:  # (S, W-2, K, 3) into the inner frames' frame
-        x, z = points[..., 0] - ox, points[..., 2] - oz  # turned by -yaw about +Y
-        return np.stack([x * cos - z * sin, points[..., 1], x * sin + z * cos], axis=-1)
+    def turned(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:  # by -yaw about +Y
+        return np.stack([x * cos - z * sin, y, x * sin + z * cos], axis=-1)
 
     dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), (s,))
-    here = local(main[:, 1:-1])
-    vel = (local(main[:, 2:]) - local(main[:, :-2])) / (2.0 * dt)[:, None, None, None]
+    inner = main[:, 1:-1]
+    here = turned(inner[..., 0] - ox, inner[..., 1], inner[..., 2] - oz)
+    step = (main[:, 2:] - main[:, :-2]) / (2.0 * dt)[:, None, None, None]
+    vel = turned(step[..., 0], step[..., 1], step[..., 2])
     r = rot[:, 1:-1][:, :, joints]  # (S, W-2, K, 4)
     roots = skeleton.parents[joints] < 0
     turn = quat.from_y_angle(-yaw)[:, :, None]  # (S, W-2, 1, 4)
@@ -312,70 +315,84 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
     """Per bar line b >= 1: the output frame within ``cut_beats`` of it (and inside both nodes'
     stored frames) where ``seam_distance`` between bar b-1's and bar b's nodes is least (within
     ``TIE``: the frame nearest the line); each bar keeps at least one frame. Returns the cuts,
-    their distances and where the take continues (the distance on the line below ``TIE``)."""
-    n_bars = len(pieces)
-    if n_bars < 2:
+    their distances and where the take continues (the distance on the line below ``TIE``: no
+    window is searched there)."""
+    n_seams = len(pieces) - 1
+    if n_seams < 1:
         return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0, dtype=bool)
-    windows = []
-    for b in range(1, n_bars):
-        line = int(frames[b, 0])
-        k = np.arange(int(frames[b - 1, 0]) + 1, int(frames[b, 1]))
-        near = np.abs(phase(k) - 4.0 * b) <= cut_beats + 1e-9
-        k = k[near | (k == line)]
-        windows.append(k)
-    width = max(len(k) for k in windows) + 2
-    sk = pieces[0][0].skeleton
-    needed = with_ancestors(sk, [sk.index(sk.canonical[k]) for k in main_joint_keys(sk)])
-    n_seams = n_bars - 1
-    valid = np.zeros((n_seams, width - 2), dtype=bool)
-    runs = {side: ([], []) for side in (0, 1)}
-    for s, k in enumerate(windows):
-        ext = np.arange(k[0] - 1, k[0] - 1 + width)  # padded past the window: masked below
-        ok = np.ones(width - 2, dtype=bool)
-        for side, b in ((0, s), (1, s + 1)):
-            m = pieces[b][0]
-            idx = source(b, ext)
-            inside = (idx >= 0.0) & (idx <= m.n_frames - 1)
-            ok &= inside[:-2] & inside[1:-1] & inside[2:]
-            root, rot = _sample_joints(m, idx, needed)
-            runs[side][0].append(root)
-            runs[side][1].append(rot)
-        ok[len(k) :] = False
-        valid[s] = ok
-        valid[s, : len(k)] |= k == int(frames[s + 1, 0])
-    feats = [
-        seam_features(sk, np.stack(runs[side][0]), np.stack(runs[side][1]), 1.0 / fps)
-        for side in (0, 1)
-    ]
-    blocks = feats[0][1]
-    dist = seam_distance(feats[0][0], feats[1][0], blocks)  # (S, width - 2)
-    cuts = np.empty(n_seams, dtype=np.int64)
-    best = np.empty(n_seams)
-    flow = np.zeros(n_seams, dtype=bool)
+    lines = frames[1:, 0].astype(np.int64)
+    on_line, _ = _distances(
+        pieces, source, fps, np.arange(n_seams), [lines[s : s + 1] for s in range(n_seams)]
+    )
+    flow = on_line[:, 0] < TIE
+    cuts, best = lines.copy(), on_line[:, 0].copy()
+    todo = np.flatnonzero(~flow)
+    windows = {}
+    for s in todo:
+        k = np.arange(int(frames[s, 0]) + 1, int(frames[s + 1, 1]))
+        near = np.abs(phase(k) - 4.0 * (s + 1)) <= cut_beats + 1e-9
+        windows[s] = k[near | (k == lines[s])]
+    # every COARSE-th frame of each window, then every frame around the best of those
+    scored: dict[int, dict[int, tuple[float, bool]]] = {int(s): {} for s in todo}
+    for refine in (False, True):
+        if not len(todo):
+            break
+        cand = []
+        for s in todo:
+            k = windows[s]
+            if refine:
+                got = scored[int(s)]
+                top = min(got, key=lambda f: (round(got[f][0] / TIE), abs(f - lines[s])))
+                k = k[(np.abs(k - top) < COARSE) & ~np.isin(k, list(got))]
+            else:
+                k = k[((k - lines[s]) % COARSE == 0)]
+            cand.append(k if len(k) else np.array([lines[s]]))
+        dist, valid = _distances(pieces, source, fps, todo, cand)
+        for row, s in enumerate(todo):
+            for j, f in enumerate(cand[row].tolist()):
+                scored[int(s)][f] = (float(dist[row, j]), bool(valid[row, j]) or f == lines[s])
     last = int(frames[0, 0])
-    for s, k in enumerate(windows):
-        line = int(frames[s + 1, 0])
-        d = np.where(valid[s, : len(k)] & (k > last), dist[s, : len(k)], np.inf)
-        on_line = d[k == line]
-        if on_line.size and on_line[0] < TIE:  # the take continues
-            cuts[s], best[s], flow[s] = line, on_line[0], True
-        elif np.isfinite(d).any():
-            i = int(np.lexsort((np.abs(k - line), np.round(d / TIE)))[0])
-            cuts[s], best[s] = k[i], d[i]
-        else:  # the line itself always lies after the previous cut
-            cuts[s], best[s] = line, float(dist[s, int(np.argmin(np.abs(k - line)))])
+    for s in todo:
+        got = {f: d for f, (d, ok) in scored[int(s)].items() if ok and f > last}
+        if got:  # the least distance (within TIE: the frame nearest the line)
+            f = min(got, key=lambda f: (round(got[f] / TIE), abs(f - lines[s])))
+            cuts[s], best[s] = f, got[f]
         last = int(cuts[s])
     return cuts, best, flow
 
 
-def _sample_joints(motion: Motion, frames: np.ndarray, joints: list[int]):
-    """``retime.sample`` of the root and of ``joints`` only (other joints' rotations left zero):
-    what the seam features' forward kinematics reads."""
-    f = np.clip(frames, 0.0, motion.n_frames - 1)
-    lo = np.floor(f).astype(np.int64)
-    hi = np.minimum(lo + 1, motion.n_frames - 1)
-    t = (f - lo)[:, None]
-    root = motion.root_positions[lo] + t * (motion.root_positions[hi] - motion.root_positions[lo])
-    rot = np.zeros(motion.rotations.shape[:0] + (f.size,) + motion.rotations.shape[1:])
-    rot[:, joints] = quat.slerp(motion.rotations[lo][:, joints], motion.rotations[hi][:, joints], t)
-    return root, rot
+def _distances(pieces, source, fps, seams, candidates):
+    """``seam_distance`` between bar s's and bar s+1's nodes at each candidate output frame of
+    each seam s of ``seams``: ``(S, W)`` distances and ``(S, W)`` bool where both nodes have the
+    frames (padded past each seam's candidates with False)."""
+    width = max(len(k) for k in candidates) + 2
+    sk = pieces[0][0].skeleton
+    needed = with_ancestors(sk, [sk.index(sk.canonical[k]) for k in main_joint_keys(sk)])
+    n = len(seams)
+    valid = np.zeros((n, width - 2), dtype=bool)
+    feats = []
+    for side in (0, 1):
+        roots, lo_rot, hi_rot, ts = [], [], [], []
+        for row, (s, k) in enumerate(zip(seams, candidates, strict=True)):
+            m = pieces[s + side][0]
+            # each candidate with the frames either side; padded past the window (masked)
+            idx = source(s + side, np.arange(k[0] - 1, k[0] - 1 + width))
+            inside = (idx >= 0.0) & (idx <= m.n_frames - 1)
+            ok = inside[:-2] & inside[1:-1] & inside[2:]
+            ok[len(k) :] = False
+            valid[row] = ok if side == 0 else valid[row] & ok
+            f = np.clip(idx, 0.0, m.n_frames - 1)
+            lo = np.floor(f).astype(np.int64)
+            hi = np.minimum(lo + 1, m.n_frames - 1)
+            t = (f - lo)[:, None]
+            roots.append(m.root_positions[lo] + t * (m.root_positions[hi] - m.root_positions[lo]))
+            lo_rot.append(m.rotations[lo][:, needed])
+            hi_rot.append(m.rotations[hi][:, needed])
+            ts.append(t)
+        rot = np.zeros((n * width,) + pieces[0][0].rotations.shape[1:])
+        rot[:, needed] = quat.slerp(
+            np.concatenate(lo_rot), np.concatenate(hi_rot), np.concatenate(ts)
+        )
+        root = np.concatenate(roots).reshape(n, width, 3)
+        feats.append(seam_features(sk, root, rot.reshape(n, width, *rot.shape[1:]), 1.0 / fps))
+    return seam_distance(feats[0][0], feats[1][0], feats[0][1]), valid
