@@ -638,7 +638,7 @@ def compress_features(
     axes of the two stacked (one shared mean and basis, so differences are preserved up to the
     dropped variance). Returns ``entry_pc``, ``exit_pc (N, Σ dims) float32`` and their block sizes.
     The graph's edges keep their exact costs; only transitions that are not edges (between
-    structure copies) are costed from these, reading ~8× less memory.
+    structure copies) are costed from these, reading about half the memory.
     """
     outs_e, outs_x, sizes = [], [], []
     start = 0

@@ -221,7 +221,7 @@ def test_stage_bound_holds_on_the_root_trajectory(travel_graph, song):
             )
             # and the renderer's file follows them: the bound holds on the rendered root too
             dance, _ = render_path(
-                travel_graph, alt.nodes, song.bars, 30.0, placements=alt.placements
+                travel_graph, alt.nodes, song.bar_beats, 30.0, placements=alt.placements
             )
             xz = dance.root_positions[:, [0, 2]]
             assert xz.min() >= -0.6 - 1e-6 and xz.max() <= 0.6 + 1e-6
@@ -235,7 +235,8 @@ def test_waypoint_is_reached(travel_graph, song):
             waypoints=[{"second": second, "position": target, "tolerance": 0.3}], **free_spec
         )
         alt = search(travel_graph, song, spec).alternatives[0]
-        pos = _rendered_root(travel_graph, alt)[8 * 48][[0, 2]]
+        first = sum(travel_graph.node_motion(n).n_frames for n in alt.index[:8])
+        pos = _rendered_root(travel_graph, alt)[first][[0, 2]]
         assert np.hypot(*(pos - np.array(target))) <= 0.3 + 1e-6
     free = search(travel_graph, song, _spec(**free_spec)).alternatives[0]
     assert not (

@@ -66,7 +66,8 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     assert song["song"] == "song.wav" and set(song["rows"]) == set(ROWS)
     assert set(SCALARS) <= set(song["rows"]["ours"]["mean"])
     html = (out / "report.html").read_text()
-    assert len(_images(html)) == 4  # beats, bars/nodes, per-bar costs, signature
+    assert len(_images(html)) == 5  # beats, bars/nodes, per-bar costs, signature, seams
+    assert "<h3>Seams</h3>" in html
     assert "<script" not in html and "http" not in html  # self-contained
     assert "Tempo-matched clip concatenation" in html
 
@@ -84,7 +85,7 @@ def test_eval_result_scores_a_synthesize_folder(setup, capsys):
     assert row["dances"] == 2 and row["controls_share"] == 1.0 and row["repeat_share"] == 1.0
     # the song recorded in the timeline lies beside the result folder: its own beats are used
     assert metrics["music_beats"] == "librosa_percussive"
-    assert len(_images((out / "report.html").read_text())) == 4
+    assert len(_images((out / "report.html").read_text())) == 5
 
 
 def test_eval_bad_input_gives_coded_errors(setup, capsys, tmp_path):

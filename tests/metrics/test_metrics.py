@@ -181,7 +181,8 @@ def test_smpl_positions_of_the_demo_skeleton(demo_bars):
     from dancegraph.motion.fk import fk_arrays
 
     sk = demo_bars.skeleton
-    pos, world = fk_arrays(sk, demo_bars.root[0], demo_bars.rotations[0])
+    rows = slice(demo_bars.ptr[0], demo_bars.ptr[1])
+    pos, world = fk_arrays(sk, demo_bars.root[rows], demo_bars.rotations[rows].astype(float))
     smpl = kinetic.smpl_positions(sk, pos, world)
     assert smpl.shape == (pos.shape[0], 24, 3)
     assert np.allclose(smpl[:, 0], pos[:, sk.index("hips")])
