@@ -37,8 +37,6 @@ from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 CUT_BEATS = 1.0
 #: Largest acceleration (m/s²) an offset's decay may add to a body point.
 MAX_OFFSET_ACC = 6.0
-#: The cut search scores every COARSE-th frame of the window, then every frame near the best.
-COARSE = 3
 #: Seam distances closer than this count as equal: the cut nearer the bar line wins.
 TIE = 0.01
 #: Least and most decay length of an offset, seconds.
@@ -327,36 +325,20 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
     flow = on_line[:, 0] < TIE
     cuts, best = lines.copy(), on_line[:, 0].copy()
     todo = np.flatnonzero(~flow)
-    windows = {}
+    windows = []
     for s in todo:
         k = np.arange(int(frames[s, 0]) + 1, int(frames[s + 1, 1]))
         near = np.abs(phase(k) - 4.0 * (s + 1)) <= cut_beats + 1e-9
-        windows[s] = k[near | (k == lines[s])]
-    # every COARSE-th frame of each window, then every frame around the best of those
-    scored: dict[int, dict[int, tuple[float, bool]]] = {int(s): {} for s in todo}
-    for refine in (False, True):
-        if not len(todo):
-            break
-        cand = []
-        for s in todo:
-            k = windows[s]
-            if refine:
-                got = scored[int(s)]
-                top = min(got, key=lambda f: (round(got[f][0] / TIE), abs(f - lines[s])))
-                k = k[(np.abs(k - top) < COARSE) & ~np.isin(k, list(got))]
-            else:
-                k = k[((k - lines[s]) % COARSE == 0)]
-            cand.append(k if len(k) else np.array([lines[s]]))
-        dist, valid = _distances(pieces, source, fps, todo, cand)
-        for row, s in enumerate(todo):
-            for j, f in enumerate(cand[row].tolist()):
-                scored[int(s)][f] = (float(dist[row, j]), bool(valid[row, j]) or f == lines[s])
+        windows.append(k[near | (k == lines[s])])
+    if len(todo):
+        dist, valid = _distances(pieces, source, fps, todo, windows)
     last = int(frames[0, 0])
-    for s in todo:
-        got = {f: d for f, (d, ok) in scored[int(s)].items() if ok and f > last}
-        if got:  # the least distance (within TIE: the frame nearest the line)
-            f = min(got, key=lambda f: (round(got[f] / TIE), abs(f - lines[s])))
-            cuts[s], best[s] = f, got[f]
+    for row, s in enumerate(todo):
+        k = windows[row]
+        ok = (valid[row, : len(k)] | (k == lines[s])) & (k > last)
+        d = np.where(ok, dist[row, : len(k)], np.inf)
+        i = int(np.lexsort((np.abs(k - lines[s]), np.round(d / TIE)))[0])
+        cuts[s], best[s] = k[i], d[i]
         last = int(cuts[s])
     return cuts, best, flow
 
