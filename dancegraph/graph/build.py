@@ -303,25 +303,26 @@ def _blended(nodes: _Nodes, a: int, b: int, lower: np.ndarray) -> tuple:
 
 
 def _shuffled(skeleton: Skeleton, nodes: _Nodes, a: int, b: int) -> tuple:
-    """Bar a up to its beat 2, then bar b from its beat 2 on, joined at a's beat 2 by the
-    renderer's hand-over (b's root continues a's; offsets inertialized)."""
+    """Bar a up to its beat 2, then bar b from its beat 2 on (its own frames, shifted by whole
+    frames, so it runs on into b's next bar unchanged), joined at a's beat 2 by the renderer's
+    hand-over (b's root continues a's; offsets inertialized)."""
     root_a, rot_a = nodes.frames(a)
+    root_b, rot_b = nodes.frames(b)
     two = BEAT0 + 2
     cut = int(np.floor(nodes.beats[a, two])) + 1  # a's first frame after its beat 2
-    shift = nodes.beats[b, two] - nodes.beats[a, two]  # b's frame = our frame + shift
-    n_b = nodes.ptr[b + 1] - nodes.ptr[b]
-    x = np.arange(cut - 1, int(np.floor(n_b - 1 - shift)) + 1, dtype=float)
-    r_b, q_b, _ = nodes.sample(np.full(len(x), b), x + shift)
-    fps = float(nodes.fps[a])
-    seg = Motion(skeleton, fps, r_b[1:], q_b[1:])
-    hold = min(cut + 2, len(root_a))
-    before = Motion(
-        skeleton, fps, root_a[cut - 1 : hold].astype(float), rot_a[cut - 1 : hold].astype(float)
-    )
-    after = Motion(skeleton, fps, r_b[:3], q_b[:3])
-    if before.n_frames < 3 or after.n_frames < 3:
+    shift = int(round(nodes.beats[b, two] - nodes.beats[a, two]))  # b's frame = ours + shift
+    if cut - 1 + shift < 0 or cut + 2 > len(root_a) or cut + 2 + shift > len(root_b):
         raise ValueError("a shuffle needs frames on both sides of the join")
-    joined, _, _ = hand_over(before, after, seg)
+    fps = float(nodes.fps[a])
+
+    def part(root: np.ndarray, rot: np.ndarray, lo: int, hi: int | None = None) -> Motion:
+        return Motion(skeleton, fps, root[lo:hi].astype(float), rot[lo:hi].astype(float))
+
+    joined, _, _ = hand_over(
+        part(root_a, rot_a, cut - 1, cut + 2),
+        part(root_b, rot_b, cut - 1 + shift, cut + 2 + shift),
+        part(root_b, rot_b, cut + shift),
+    )
     root = np.concatenate([root_a[:cut], joined.root_positions])
     rot = np.concatenate([rot_a[:cut].astype(np.float64), joined.rotations])
     beats = np.concatenate([nodes.beats[a, : two + 1], nodes.beats[b, two + 1 :] - shift])

@@ -39,6 +39,10 @@ CUT_BEATS = 1.0
 MAX_OFFSET_ACC = 6.0
 #: Seam distances closer than this count as equal: the cut nearer the bar line wins.
 TIE = 0.01
+#: Two nodes whose seam distance at the bar line is below this show the same motion there (the
+#: next bar of the same take, up to interpolation: about 2.5 mm or mm/s per main joint): the take
+#: continues and there is no seam.
+SAME = 0.05
 #: Least and most decay length of an offset, seconds.
 BLEND_MIN_S = 0.1
 BLEND_MAX_S = 0.6
@@ -243,7 +247,7 @@ def stitch(
     ``node_warp(beats_b)(song_phase(bar_beats)(k / fps) - 4b)``. Each hand-over is cut at the
     frame within ``cut_beats`` of its bar line (and where both nodes have stored frames) with
     the least ``seam_distance``, then joined by ``hand_over`` (``blend`` off: root alignment
-    only). Where the two nodes show the same frames at the bar line (distance below ``TIE``: bar
+    only). Where the two nodes show the same motion at the bar line (distance below ``SAME``: bar
     b's node is the next bar of bar b-1's take) the take simply continues: the cut stays on the
     line, nothing is blended, and it is no seam.
 
@@ -313,7 +317,7 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
     """Per bar line b >= 1: the output frame within ``cut_beats`` of it (and inside both nodes'
     stored frames) where ``seam_distance`` between bar b-1's and bar b's nodes is least (within
     ``TIE``: the frame nearest the line); each bar keeps at least one frame. Returns the cuts,
-    their distances and where the take continues (the distance on the line below ``TIE``: no
+    their distances and where the take continues (the distance on the line below ``SAME``: no
     window is searched there)."""
     n_seams = len(pieces) - 1
     if n_seams < 1:
@@ -322,7 +326,7 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
     on_line, _ = _distances(
         pieces, source, fps, np.arange(n_seams), [lines[s : s + 1] for s in range(n_seams)]
     )
-    flow = on_line[:, 0] < TIE
+    flow = on_line[:, 0] < SAME
     cuts, best = lines.copy(), on_line[:, 0].copy()
     todo = np.flatnonzero(~flow)
     windows = []
