@@ -29,7 +29,7 @@ Arrays (N nodes, E edges, M motion rows, R stored frames, J joints, D transition
   CSR form, ``indices`` sorted within each row.
 - ``motion_row (N,) int32`` the node's motion row; row m's frames are ``motion_ptr[m] ..
   motion_ptr[m+1]`` (``motion_ptr (M+1,) int64``) of ``root (R, 3) float32`` (metres, world frame
-  of the source take) and ``rotations (R, J, 4) float16`` (local joint rotations, x y z w), at
+  of the source take) and ``rotations (R, J, 4) float32`` (local joint rotations, x y z w), at
   ``motion_fps (M,) float32``: the take's frames from about a beat before the bar's downbeat to a
   beat after its closing downbeat; ``motion_beats (M, 9) float32`` the frames (fractional,
   counted from the row's first) of the bar's beats -2 .. 6 (``retime.NODE_BEATS``), what the

@@ -848,7 +848,7 @@ def build_arrays(
         "motion_beats": nodes.beats.astype(np.float32),
         "motion_fps": nodes.fps.astype(np.float32),
         "root": nodes.root.astype(np.float32),
-        "rotations": nodes.rotations.astype(np.float16),
+        "rotations": nodes.rotations.astype(np.float32),
     }
     manifest = {
         "clips": list(bars.clips),
