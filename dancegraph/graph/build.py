@@ -318,10 +318,13 @@ def _shuffled(skeleton: Skeleton, nodes: _Nodes, a: int, b: int) -> tuple:
     def part(root: np.ndarray, rot: np.ndarray, lo: int, hi: int | None = None) -> Motion:
         return Motion(skeleton, fps, root[lo:hi].astype(float), rot[lo:hi].astype(float))
 
+    # the offsets are gone two frames before b's closing downbeat: from there on it is b's take
+    most = int(np.floor(nodes.beats[b, BEAT0 + 4])) - 2 - (cut + shift)
     joined, _, _ = hand_over(
         part(root_a, rot_a, cut - 1, cut + 2),
         part(root_b, rot_b, cut - 1 + shift, cut + 2 + shift),
         part(root_b, rot_b, cut + shift),
+        most=max(most, 1),
     )
     root = np.concatenate([root_a[:cut], joined.root_positions])
     rot = np.concatenate([rot_a[:cut].astype(np.float64), joined.rotations])

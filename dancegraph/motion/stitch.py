@@ -45,7 +45,7 @@ TIE = 0.01
 SAME = 0.05
 #: Least and most decay length of an offset, seconds.
 BLEND_MIN_S = 0.1
-BLEND_MAX_S = 0.6
+BLEND_MAX_S = 1.0
 
 
 # --------------------------------------------------------------------------------------------
