@@ -85,9 +85,13 @@ def follow_plan(motion: Motion, bar_starts: np.ndarray, plan: np.ndarray) -> tup
     """Bend ``motion``'s root path so bar ``b`` starts at ``plan[b]`` (x, z, yaw).
 
     ``bar_starts``: ``(B,)`` frame of each bar's first frame. The error at each bar start
-    (position and heading) is interpolated linearly between bar starts and removed; after the
-    last bar start it stays constant. Returns the motion and ``{max_m, max_rad}`` of the drift.
+    (position and heading, unwrapped) is interpolated between bar starts by a monotone cubic
+    (PCHIP: C1, so the correction adds no velocity jump at a bar start) and removed; before the
+    first and after the last bar start it stays constant. Returns the motion and ``{max_m,
+    max_rad}`` of the drift.
     """
+    from scipy.interpolate import PchipInterpolator
+
     starts = np.asarray(bar_starts, dtype=np.int64)
     root = motion.root_positions.copy()
     rot = motion.rotations.copy()
@@ -95,10 +99,13 @@ def follow_plan(motion: Motion, bar_starts: np.ndarray, plan: np.ndarray) -> tup
     got_yaw = quat.heading_angle(rot[starts, 0])
     err_xz = plan[:, :2] - got_xz
     err_yaw = np.angle(np.exp(1j * (plan[:, 2] - got_yaw)))
-    t = np.arange(motion.n_frames)
-    fix_x = np.interp(t, starts, err_xz[:, 0])
-    fix_z = np.interp(t, starts, err_xz[:, 1])
-    fix_yaw = np.interp(t, starts, err_yaw)
+    errors = np.column_stack([err_xz, np.unwrap(err_yaw)])
+    t = np.clip(np.arange(motion.n_frames), starts[0], starts[-1])
+    if len(starts) > 1:
+        fix = PchipInterpolator(starts, errors, axis=0)(t)
+    else:
+        fix = np.broadcast_to(errors[0], (len(t), 3))
+    fix_x, fix_z, fix_yaw = fix[:, 0], fix[:, 1], fix[:, 2]
     root[:, 0] += fix_x
     root[:, 2] += fix_z
     rot[:, 0] = quat.multiply(quat.from_y_angle(fix_yaw), rot[:, 0])
