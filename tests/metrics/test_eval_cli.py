@@ -60,8 +60,18 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     # the random walk ignores the song's structure
     assert metrics["rows"]["random_walk"]["repeat_share"] < 1.0
     # graph dances have seams measured against the library; real dances have none
-    assert ours["seam_median_percentile"] is not None
     assert metrics["rows"]["real"]["seam_median_percentile"] is None
+    # every search dance carries its seam section: hand-overs scored against the library, the
+    # worst seam with its bar, foot sliding near seams beside the library's own, every bar line
+    for dance in metrics["songs"][0]["rows"]["ours"]["dances"]:
+        seams = dance["seams"]
+        assert seams["chance"]["median_percentile"] > 0 and seams["library_skate"]["steps"] > 0
+        n_bars = metrics["songs"][0]["analysis"]["n_bars"]
+        assert seams["bar_lines"]["count"] == n_bars - 1
+        assert seams["skate"]["steps"] >= 0 and seams["flagged_frames"] == []
+        if seams["count"]:
+            assert 0 < seams["worst"]["bar"] < n_bars
+            assert seams["worst"]["percentile"] >= seams["median_percentile"]
     song = metrics["songs"][0]
     assert song["song"] == "song.wav" and set(song["rows"]) == set(ROWS)
     assert set(SCALARS) <= set(song["rows"]["ours"]["mean"])
