@@ -3,23 +3,22 @@
 Imports cmu-salsa into a temporary store, builds its graph, searches one path for a synthetic
 3-minute 4/4 song (``bench_search.song``: 124 BPM, phrase structure on) and times
 ``render.render_path`` (time warp, seams, stage plan, foot cleanup) and ``render.render`` (the
-same plus the BVH file and ``timeline.json``) at 60 fps: median and best of several runs, wall and
-CPU seconds (CPU time is what a shared, busy machine still measures fairly).
+same plus the BVH file and ``timeline.json``) at 60 fps: medians of 5 runs after a warm one, wall
+and CPU seconds (``bench_search.timed``; CPU time is what a shared, busy machine still measures
+fairly).
 Run: ``python -m bench render``.
 """
 
 from __future__ import annotations
 
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.bench_search import song  # noqa: E402
+from bench.bench_search import song, timed  # noqa: E402
 from dancegraph.graph import artifact  # noqa: E402
 from dancegraph.graph.build import build_dataset_graph  # noqa: E402
 from dancegraph.graph.search import search  # noqa: E402
@@ -31,17 +30,6 @@ from dancegraph.store import ObjectStore  # noqa: E402
 
 FPS = 60.0
 SONG_S = 180.0
-RUNS = 5
-
-
-def _runs(fn, n: int = RUNS) -> tuple[list[float], list[float]]:
-    walls, cpus = [], []
-    for _ in range(n):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        walls.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - c0)
-    return walls, cpus
 
 
 def main() -> int:
@@ -65,29 +53,29 @@ def main() -> int:
         )
         found = search(graph, music, spec)
         alt = found.alternatives[0]
-        rows = []
-        walls, cpus = _runs(
-            lambda: render_path(
-                graph,
-                alt.nodes,
-                music.bar_beats,
-                FPS,
-                duration_s=music.duration_s,
-                placements=alt.placements,
+        rows = [
+            (
+                "render_path",
+                timed(
+                    lambda: render_path(
+                        graph,
+                        alt.nodes,
+                        music.bar_beats,
+                        FPS,
+                        duration_s=music.duration_s,
+                        placements=alt.placements,
+                    )
+                ),
             )
-        )
-        rows.append(("render_path", walls, cpus))
+        ]
         out = Path(tmp) / "out"
-        walls, cpus = _runs(lambda: render(graph, music, found, spec, out))
-        rows.append(("render (+ BVH, timeline)", walls, cpus))
-    bars = len(music.bars)
-    print(f"{SONG_S:.0f} s song, {bars} bars, {FPS:.0f} fps, {RUNS} runs each")
-    print(f"{'step':<28}{'wall median':>13}{'wall best':>11}{'CPU median':>12}{'CPU best':>10}")
-    for name, walls, cpus in rows:
-        print(
-            f"{name:<28}{statistics.median(walls):>13.3f}{min(walls):>11.3f}"
-            f"{statistics.median(cpus):>12.3f}{min(cpus):>10.3f}"
+        rows.append(
+            ("render (+ BVH, timeline)", timed(lambda: render(graph, music, found, spec, out)))
         )
+    print(f"{SONG_S:.0f} s song, {len(music.bars)} bars, {FPS:.0f} fps, medians of 5 runs")
+    print(f"{'step':<28}{'wall s':>10}{'CPU s':>10}")
+    for name, (wall, cpu) in rows:
+        print(f"{name:<28}{wall:>10.3f}{cpu:>10.3f}")
     return 0
 
 
