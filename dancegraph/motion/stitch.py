@@ -10,7 +10,8 @@ the phase the song has reached there, match best by ``seam_distance`` (pose and 
 main joints, each in its own heading frame): before the cut p dances on past its bar, after it q
 starts early or late, and the beats stay where the warp puts them. The graph build links nodes
 by the same distance (its minimum over the same window, on a coarser grid), so an edge that
-exists is a hand-over the renderer can make smoothly.
+exists is a hand-over the renderer can make smoothly. Where q is the next bar of p's take (the
+two show the same motion at the bar line) the take simply continues: no cut, no blend, no seam.
 
 At the cut (``hand_over``) q is turned about +Y and moved on the ground so that its root's
 heading and ground position equal p's at the cut frame, then the remaining offsets between p and
