@@ -90,7 +90,9 @@ def scale_graph(
     out = {}
     # per-node arrays: every artifact array but the CSR edges and the per-frame motion
     node_keys = [
-        k for k in artifact.ARRAYS if k not in {"indptr", "indices", "costs", "root", "rotations"}
+        k
+        for k in artifact.ARRAYS
+        if k not in {"indptr", "indices", "costs"} | set(artifact.MOTION_ARRAYS)
     ]
     for k in node_keys:
         out[k] = np.concatenate([a[k]] * reps)
@@ -122,8 +124,8 @@ def scale_graph(
     np.cumsum(np.bincount(src, minlength=reps * n), out=out["indptr"][1:])
     out["indices"] = dst.astype(np.int32)
     out["costs"] = cost.astype(np.float32)
-    out["root"] = a["root"]
-    out["rotations"] = a["rotations"]
+    for k in artifact.MOTION_ARRAYS:
+        out[k] = a[k]
     manifest = dict(g.manifest)
     manifest["clips"] = [f"{c}#{r}" if r else c for r in range(reps) for c in g.clips]
     manifest["bar_frames"] = {}

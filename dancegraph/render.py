@@ -1,11 +1,14 @@
 """Path → motion → files: the dance of each search alternative as BVH (and FBX) plus ``timeline.json``.
 
-For every alternative of a search result, bar ``b``'s node clip (a graph node's bar of motion) is
-time-warped onto the music bar's frames (``retime``), the clips are stitched with root alignment
-and seam blending (``stitch``), placed on the stage where the search planned the path, and the feet
-are cleaned (``clean_foot_skate``). Frame 0 of every file is t = 0 of the song: before the first
-bar the first pose is held, after the last bar the last pose, so an artist can drop the audio and
-the animation on one timeline. Bar ``b`` occupies frames ``[round(start_b·fps), round(start_{b+1}·fps))``.
+For every alternative of a search result, bar ``b``'s node is laid on the music bar through the
+beat-anchored time-warp (every beat of the node on the song's beat of the same number), the nodes
+hand over to each other where they match best within a beat of each bar line, with root alignment
+and inertialized offsets (``motion.stitch``; docs/rendering.md), the dance is placed on the stage
+where the search planned the path, and the feet are cleaned (``clean_foot_skate``). Frame 0 of
+every file is t = 0 of the song: before the first bar the first pose is held, after the last bar
+the last pose, so an artist can drop the audio and the animation on one timeline. Bar ``b``
+occupies frames ``[round(start_b·fps), round(start_{b+1}·fps))``; the frames where its node takes
+over (``seams``) lie within a beat of its first.
 
 Files in ``out_dir``:
 
@@ -87,9 +90,13 @@ def follow_plan(motion: Motion, bar_starts: np.ndarray, plan: np.ndarray) -> tup
     """Bend ``motion``'s root path so bar ``b`` starts at ``plan[b]`` (x, z, yaw).
 
     ``bar_starts``: ``(B,)`` frame of each bar's first frame. The error at each bar start
-    (position and heading) is interpolated linearly between bar starts and removed; after the
-    last bar start it stays constant. Returns the motion and ``{max_m, max_rad}`` of the drift.
+    (position and heading, unwrapped) is interpolated between bar starts by a monotone cubic
+    (PCHIP: C1, so the correction adds no velocity jump at a bar start) and removed; before the
+    first and after the last bar start it stays constant. Returns the motion and ``{max_m,
+    max_rad}`` of the drift.
     """
+    from scipy.interpolate import PchipInterpolator
+
     starts = np.asarray(bar_starts, dtype=np.int64)
     root = motion.root_positions.copy()
     rot = motion.rotations.copy()
@@ -97,10 +104,13 @@ def follow_plan(motion: Motion, bar_starts: np.ndarray, plan: np.ndarray) -> tup
     got_yaw = quat.heading_angle(rot[starts, 0])
     err_xz = plan[:, :2] - got_xz
     err_yaw = np.angle(np.exp(1j * (plan[:, 2] - got_yaw)))
-    t = np.arange(motion.n_frames)
-    fix_x = np.interp(t, starts, err_xz[:, 0])
-    fix_z = np.interp(t, starts, err_xz[:, 1])
-    fix_yaw = np.interp(t, starts, err_yaw)
+    errors = np.column_stack([err_xz, np.unwrap(err_yaw)])
+    t = np.clip(np.arange(motion.n_frames), starts[0], starts[-1])
+    if len(starts) > 1:
+        fix = PchipInterpolator(starts, errors, axis=0)(t)
+    else:
+        fix = np.broadcast_to(errors[0], (len(t), 3))
+    fix_x, fix_z, fix_yaw = fix[:, 0], fix[:, 1], fix[:, 2]
     root[:, 0] += fix_x
     root[:, 2] += fix_z
     rot[:, 0] = quat.multiply(quat.from_y_angle(fix_yaw), rot[:, 0])
@@ -126,17 +136,20 @@ def hold(motion: Motion, before: int, after: int) -> Motion:
 def render_path(
     graph: MotionGraph,
     nodes: list[str],
-    bars: np.ndarray,
+    bar_beats: np.ndarray,
     fps: float,
     *,
     duration_s: float | None = None,
     placements: np.ndarray | None = None,
     foot_cleanup: bool = True,
 ) -> tuple[Motion, dict]:
-    """The dance of one path: ``nodes[b]`` (node ids) danced on music bar ``bars[b]`` (seconds).
+    """The dance of one path: ``nodes[b]`` (node ids) danced on music bar b, whose beats are
+    ``bar_beats[b]`` (``(B, 5)`` s: 4 beats and the next downbeat, ``analysis.bar_beats``).
 
     Returns the motion (frame 0 = t 0 of the song, ``duration_s`` long when given) and a report:
-    ``frames`` per bar, ``seams`` (frame indices), ``foot_skate`` (before/after), ``stage``
+    ``frames`` per bar, ``seams`` (frames where a later bar's node takes over; not where a take
+    simply continues into its next bar), ``seam_bars`` (the bar each seam starts), ``cut_beats``
+    (each seam's offset from its bar line, beats), ``foot_skate`` (before/after), ``stage``
     (root ground-plane extent), ``drift`` (how far stitching strayed from the plan, corrected).
 
     ``placements``: ``(B, 3)`` (x, z, yaw) of each bar's first frame as the search planned it
@@ -145,20 +158,19 @@ def render_path(
     linearly over each bar, so stage bounds and waypoints the search honoured hold on the file.
     """
     from dancegraph.motion.contacts import clean_foot_skate
-    from dancegraph.motion.retime import retime
-    from dancegraph.motion.stitch import stitch
+    from dancegraph.motion.stitch import CUT_BEATS, stitch
 
-    bars = np.asarray(bars, dtype=float).reshape(-1, 2)
-    if len(nodes) != len(bars):
+    bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    if len(nodes) != len(bar_beats):
         raise DanceGraphError(
-            f"the path has {len(nodes)} nodes for {len(bars)} music bars",
+            f"the path has {len(nodes)} nodes for {len(bar_beats)} music bars",
             code="render_mismatch",
             field="nodes",
         )
-    if len(bars) == 0:
+    if len(bar_beats) == 0:
         raise DanceGraphError("the song has no bars to dance", code="render_empty", field="bars")
-    frames = bar_frames(bars, fps)
-    clips = []
+    frames = bar_frames(bar_beats[:, [0, 4]], fps)
+    pieces = []
     for b, node_id in enumerate(nodes):
         try:
             i = graph.node_index(node_id)
@@ -168,24 +180,29 @@ def render_path(
                 code="unknown_node",
                 field=f"nodes[{b}]",
             ) from None
-        n = int(frames[b, 1] - frames[b, 0])
-        clips.append(retime(graph.node_motion(i), n, fps))
-    dance, seams = stitch(clips)
+        pieces.append(graph.node_frames(i))
+    cut_beats = float((graph.manifest.get("seam") or {}).get("cut_beats", CUT_BEATS))
+    dance, cuts = stitch(pieces, bar_beats, frames, fps, cut_beats=cut_beats)
     expected = int(frames[-1, 1] - frames[0, 0])
     if dance.n_frames != expected:
         raise DanceGraphError(
             f"stitching returned {dance.n_frames} frames for {expected} bar frames",
             code="render_failed",
         )
-    report: dict = {"seams": [int(s) + int(frames[0, 0]) for s in np.asarray(seams).tolist()]}
+    seam = ~cuts["continuous"]
+    report: dict = {
+        "seams": [int(s) for s in cuts["cuts"][seam]],
+        "seam_bars": [int(b) + 1 for b in np.flatnonzero(seam)],
+        "cut_beats": [round(float(x), 3) for x in cuts["cut_beats"][seam]],
+    }
     if placements is None:
         dance = place(dance, (0.0, 0.0), 0.0)
         report["drift"] = None
     else:
         plan = np.asarray(placements, dtype=float).reshape(-1, 3)
-        if len(plan) != len(bars):
+        if len(plan) != len(bar_beats):
             raise DanceGraphError(
-                f"{len(plan)} placements for {len(bars)} bars",
+                f"{len(plan)} placements for {len(bar_beats)} bars",
                 code="render_mismatch",
                 field="placements",
             )
@@ -270,7 +287,7 @@ def render(
         dance, report = render_path(
             graph,
             nodes,
-            bars,
+            analysis.bar_beats,
             fps,
             duration_s=float(analysis.duration_s),
             placements=alt.get("placements"),
@@ -304,6 +321,8 @@ def render(
                 "frames": dance.n_frames,
                 "bars": [_bar_entry(graph, alt, b, node) for b, node in enumerate(nodes)],
                 "seams": report["seams"],
+                "seam_bars": report["seam_bars"],
+                "cut_beats": report["cut_beats"],
                 "foot_skate": report.get("foot_skate"),
                 "stage": report["stage"],
                 "drift": report["drift"],

@@ -167,9 +167,12 @@ def _load_music(entries: list[dict], root: Path, dims: list[str], kind: str) -> 
 
 
 def _dance_positions(motion, beat_times: np.ndarray, frames: int = 48) -> np.ndarray:
-    """``(B, frames, K, 3)`` beat-aligned main-joint positions of bars (the descriptor input)."""
-    from dancegraph.graph.build import beat_sample_times, main_joint_keys
+    """``(B, frames, K, 3)`` beat-aligned main-joint positions of bars (the descriptor input):
+    beat k at sample k·frames/4, through the renderer's beat warp (``retime.Warp``), as the graph
+    build samples its nodes."""
     from dancegraph.motion.fk import canonical_positions, forward_kinematics
+    from dancegraph.motion.retime import Warp
+    from dancegraph.motion.stitch import main_joint_keys
 
     pos, rot = forward_kinematics(motion)
     pts = canonical_positions(motion.skeleton, pos, rot, main_joint_keys(motion.skeleton))
@@ -177,7 +180,7 @@ def _dance_positions(motion, beat_times: np.ndarray, frames: int = 48) -> np.nda
     flat = pts.reshape(len(t), -1)
     out = []
     for bt in beat_times:
-        ts = beat_sample_times(bt, frames)
+        ts = Warp(np.arange(5.0), bt)(np.arange(frames) * 4.0 / frames)
         out.append(np.stack([np.interp(ts, t, c) for c in flat.T], axis=1))
     return np.stack(out).reshape(len(beat_times), frames, -1, 3)
 

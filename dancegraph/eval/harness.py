@@ -73,6 +73,7 @@ SCALARS: dict[str, str] = {
     "phase_r": "Phase R",
     "seam_flagged_share": "Seams > p99",
     "seam_median_percentile": "Seam pct. (median)",
+    "seam_skate_m_s": "Skate at seams m/s",
     "skate_speed_m_s": "Skate m/s",
     "repeat_share": "Repeat ok",
     "mirror_share": "Mirror ok",
@@ -108,6 +109,7 @@ class Library:
     seams: smoothness.Reference | None
     kinetic_windows: np.ndarray | None  # (N, 72) raw features of the takes' windows
     norm: tuple[np.ndarray, np.ndarray] | None
+    contact_skate: dict | None = None  # the takes' own foot sliding at contacts (``seam_metrics``)
     _takes: dict = field(default_factory=dict, repr=False)
 
     def take(self, clip: str) -> Motion:
@@ -124,14 +126,16 @@ def load_library(graph: MotionGraph, dataset=None) -> Library:
     if dataset is None:
         return Library(graph, None, None, None, None)
     lib = Library(graph, dataset, None, None, None)
-    positions, windows = [], []
+    positions, windows, skates = [], [], []
     for clip in dataset.clips:
         motion = lib.take(clip.id)
         pos, world = forward_kinematics(motion)
         positions.append(pos)
         smpl = kinetic.smpl_positions(motion.skeleton, pos, world)
         windows.append(kinetic.window_features(smpl, EVAL_FPS, FID_WINDOW_S))
+        skates.append(physical.foot_skating(pos, world, motion.skeleton, EVAL_FPS))
     lib.seams = smoothness.Reference.from_takes(positions, EVAL_FPS)
+    lib.contact_skate = _pooled_skate(skates)
     lib.kinetic_windows = np.concatenate(windows)
     lib.norm = kinetic.normaliser(lib.kinetic_windows)
     return lib
@@ -212,12 +216,10 @@ def score_dance(
     smpl_all = kinetic.smpl_positions(motion.skeleton, pos, world)
     kin = kinematic_beats(pos, fps)
     m: dict = sync_metrics(mbeats.DanceBeats.of(smpl_all, fps, kin), span, grid, other)
+    seam_rows = None
     if seams is not None and lib.seams is not None:
-        rep = smoothness.seam_report(pos, fps, seams, lib.seams)
-        m["seam_flagged_share"] = rep["flagged_share"]
-        m["seam_median_percentile"] = rep["median_percentile"]
-        m["seams"] = {k: v for k, v in rep.items() if k != "seams"}
-        m["seams"]["flagged_frames"] = [r["frame"] for r in rep["seams"] if r["flagged"]]
+        seam_m, seam_rows = seam_metrics(lib, pos, world, motion.skeleton, seams, bars)
+        m.update(seam_m)
     skate = physical.foot_skating(pos, world, motion.skeleton, fps)
     m["skate_speed_m_s"] = skate["mean_speed_m_s"]
     m["foot_skating"] = skate
@@ -246,6 +248,7 @@ def score_dance(
         "fps": fps,
         "signature": sig if nodes is not None else None,
         "node_ids": lib.graph.node_ids if nodes is not None else None,
+        "seams": seam_rows,
     }
     return Dance(
         metrics=m,
@@ -275,6 +278,79 @@ def sync_metrics(
         out[f"{key}_half"] = None if key == "phase_r" else half[key]
         out[f"{key}_other"] = far.get(key)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# seams
+
+#: Seconds either side of a seam in which foot sliding is measured.
+SEAM_SKATE_S = 0.2
+
+
+def _pooled_skate(parts: list[dict]) -> dict:
+    """``physical.foot_skating`` results pooled over dances (weighted by their counted steps)."""
+    steps = sum(p["steps"] for p in parts)
+    mean = sum(p["mean_speed_m_s"] * p["steps"] for p in parts) / steps if steps else 0.0
+    share = sum(p["skating_share"] * p["steps"] for p in parts) / steps if steps else 0.0
+    return {"mean_speed_m_s": float(mean), "skating_share": float(share), "steps": int(steps)}
+
+
+def seam_metrics(
+    lib: Library, pos: np.ndarray, world: np.ndarray, skeleton, seams, bars: np.ndarray | None
+) -> tuple[dict, list[dict]]:
+    """The seam section of one dance (``pos``, ``world``: its forward kinematics at 60 fps).
+
+    ``seams``: frames where a node takes over (``render_path``'s ``seams``: not where a take
+    continues into its own next bar); ``bars (T, 2)`` s. Returns the metrics: the share of
+    seams above the library's p99 and the median seam percentile (``smoothness.seam_report``),
+    foot sliding of planted feet within ±``SEAM_SKATE_S`` of the seams beside the library's own
+    sliding at contacts (``seam_skate_m_s``; ``seams.skate`` / ``seams.library_skate``), the
+    worst seam with the bar it starts (the nearest bar line), the same scores at every bar line
+    (``seams.bar_lines``, a take continuing included) and the library's chance row (every frame
+    of its takes scored as a seam); and the per-seam rows (for the report's timeline).
+    """
+    assert lib.seams is not None  # score_dance calls this only with the library's reference
+    fps = EVAL_FPS
+    rep = smoothness.seam_report(pos, fps, seams, lib.seams)
+    rows = rep["seams"]
+    lines = (
+        np.round(np.asarray(bars, dtype=float)[:, 0] * fps).astype(np.int64)
+        if bars is not None and len(bars)
+        else np.zeros(0, dtype=np.int64)
+    )
+    for r in rows:
+        r["percentile"] = max(r["speed_percentile"], r["acc_percentile"])
+        r["bar"] = int(np.argmin(np.abs(lines - r["frame"]))) if lines.size else None
+    near = np.zeros(len(pos), dtype=bool)
+    w = int(round(SEAM_SKATE_S * fps))
+    for r in rows:
+        near[max(0, r["frame"] - w) : r["frame"] + w + 1] = True
+    skate = physical.foot_skating(pos, world, skeleton, fps, frames=near)
+    summary = {k: v for k, v in rep.items() if k != "seams"}
+    summary["flagged_frames"] = [r["frame"] for r in rows if r["flagged"]]
+    summary["worst"] = (
+        {
+            k: max(rows, key=lambda r: r["percentile"])[k]
+            for k in ("frame", "bar", "percentile", "speed_m_s", "acc_m_s2")
+        }
+        if rows
+        else None
+    )
+    summary["skate"] = skate
+    summary["library_skate"] = lib.contact_skate
+    if lines.size > 1:
+        at_lines = smoothness.seam_report(pos, fps, lines[1:], lib.seams)
+        summary["bar_lines"] = {
+            k: at_lines[k] for k in ("count", "flagged", "flagged_share", "median_percentile")
+        }
+    summary["chance"] = lib.seams.chance
+    metrics = {
+        "seam_flagged_share": rep["flagged_share"],
+        "seam_median_percentile": rep["median_percentile"],
+        "seam_skate_m_s": skate["mean_speed_m_s"] if skate["steps"] else None,
+        "seams": summary,
+    }
+    return metrics, rows
 
 
 # --------------------------------------------------------------------------------------------
@@ -349,7 +425,7 @@ def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec)
     return render_path(
         lib.graph,
         ids,
-        analysis.bars,
+        analysis.bar_beats,
         EVAL_FPS,
         duration_s=float(analysis.duration_s),
         placements=placements,

@@ -4,7 +4,8 @@ The table of rows × metrics comes first, then the sync table (every sync metric
 chance rows and the gain over each), then per song four plots of our dance (the first
 alternative of the ``ours`` row, or of a scored result): music beats against kinematic beats on a
 timeline, the bars and phrases with the chosen nodes, the per-bar costs, and the motif-signature
-histogram against its target.
+histogram against its target; then the seams of every alternative: a table and a timeline of each
+seam's score with the flagged seams marked (``_seam_section``).
 """
 
 from __future__ import annotations
@@ -173,6 +174,70 @@ def _signature_plot(dance) -> str | None:
     return png_data_uri(fig)
 
 
+def _seam_section(dances) -> list[str]:
+    """The seams of every alternative: a table (seams, share above the library's p99, median
+    percentile, worst seam and its bar, foot sliding near seams against the library's own at
+    contacts) and a timeline of every seam's percentile, flagged seams marked with their bar."""
+    import matplotlib.pyplot as plt
+
+    from dancegraph.metrics.smoothness import FLAG_PERCENTILE
+
+    scored = [(k, d) for k, d in enumerate(dances) if d.plot.get("seams") is not None]
+    if not scored:
+        return []
+    head = (
+        "<tr><th>alt.</th><th>seams</th><th>&gt; p99</th><th>median pct.</th><th>worst (bar)</th>"
+        "<th>skate ±0.2 s m/s</th><th>library skate m/s</th><th>bar lines &gt; p99 / median</th></tr>"
+    )
+    rows = []
+    fig, ax = plt.subplots(figsize=(14, 2.2 + 0.3 * len(scored)))
+    for k, d in scored:
+        s = d.metrics.get("seams", {})
+        worst = s.get("worst") or {}
+        lines = s.get("bar_lines") or {}
+        lib = s.get("library_skate") or {}
+        rows.append(
+            f"<tr><td>{k}</td><td>{_fmt(s.get('count'))}</td>"
+            f"<td>{_fmt(s.get('flagged_share'))}</td><td>{_fmt(s.get('median_percentile'))}</td>"
+            f"<td>{_fmt(worst.get('percentile'))} ({_fmt(worst.get('bar'))})</td>"
+            f"<td>{_fmt((s.get('skate') or {}).get('mean_speed_m_s'))}</td>"
+            f"<td>{_fmt(lib.get('mean_speed_m_s'))}</td>"
+            f"<td>{_fmt(lines.get('flagged_share'))} / {_fmt(lines.get('median_percentile'))}</td></tr>"
+        )
+        seam_rows = d.plot["seams"]
+        t = np.array([r["frame"] for r in seam_rows]) / d.plot["fps"]
+        pct = np.array([r["percentile"] for r in seam_rows])
+        ax.plot(t, pct, ".", ms=4, label=f"alternative {k}")
+        for r, x in zip(seam_rows, t, strict=True):
+            if r["flagged"]:
+                ax.plot([x], [r["percentile"]], "x", color="red", ms=9, mew=2)
+                ax.annotate(f"bar {r['bar']}", (x, r["percentile"]), fontsize=7, color="red")
+    ax.axhline(FLAG_PERCENTILE, color="red", lw=0.8, ls="--", label="library p99 (flag)")
+    chance = (scored[0][1].metrics.get("seams") or {}).get("chance") or {}
+    if chance.get("median_percentile") is not None:
+        ax.axhline(chance["median_percentile"], color="0.5", lw=0.8, ls=":", label="library median")
+    ax.set_ylim(0, 101)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("seam percentile")
+    ax.set_title("Seams on the timeline (red ×: above the library's p99)")
+    ax.legend(fontsize=7, ncol=5, loc="lower right")
+    return [
+        "<h3>Seams</h3>",
+        "<p>A seam is a frame where one node hands over to another (a take continuing into its "
+        "own next bar is none); its percentile is the larger of its joint speed's and "
+        "acceleration's in the library's own frames"
+        + (
+            f" (library frames scored the same way: median {chance['median_percentile']:.1f}, "
+            f"{100 * chance['flagged_share']:.1f} % above p99)"
+            if chance.get("median_percentile") is not None
+            else ""
+        )
+        + ".</p>",
+        f"<table>{head}{''.join(rows)}</table>",
+        f"<img alt='seams' src='{png_data_uri(fig)}'>",
+    ]
+
+
 def write_report(path: Path, metrics: dict, songs, per_song, our_row: str = "ours") -> None:
     """Write the page: the table, then per song the plots of ``our_row``'s first dance."""
     import matplotlib
@@ -219,5 +284,6 @@ def write_report(path: Path, metrics: dict, songs, per_song, our_row: str = "our
             _signature_plot(dance),
         ]
         parts.extend(f"<img alt='plot' src='{uri}'>" for uri in plots if uri)
+        parts.extend(_seam_section(ours))
     parts.append("</body></html>")
     Path(path).write_text("\n".join(parts), encoding="utf-8")

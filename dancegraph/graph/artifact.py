@@ -10,7 +10,7 @@ A build writes a new ``<version>`` folder in full, then swaps ``current``; a ser
 previous version keeps its memory maps (the old folder is never modified), so the old graph keeps
 answering while the new one loads.
 
-Arrays (N nodes, E edges, R motion rows, F frames per bar, J joints, D transition features):
+Arrays (N nodes, E edges, M motion rows, R stored frames, J joints, D transition features):
 
 - ``node_clip (N,) int32`` index into ``manifest["clips"]``; ``node_bar (N,) int32`` bar index in
   its take; ``node_kind (N,) int8`` (``KINDS``); ``node_tags (N,) uint32`` bit mask of
@@ -19,17 +19,25 @@ Arrays (N nodes, E edges, R motion rows, F frames per bar, J joints, D transitio
 - ``style (N, 32) float32`` style embedding; ``signature (N,) uint8`` the node's rhythm
   signature as a slot pattern (bit i = slot i, ``rhythm.signatures.to_pattern``); ``motif (N,)
   int32``.
-- ``entry (N, D) float32`` / ``exit (N, D) float32`` transition features (see ``build``), and
-  ``entry_pc`` / ``exit_pc (N, P) float32`` their per-block PCA (``manifest["pc_blocks"]``) for
-  on-demand costs of transitions that are not edges.
+- ``entry (N, D) float32`` / ``exit (N, D) float32`` transition features at the bar line (see
+  ``build``), and ``entry_pc`` / ``exit_pc (N, P) float32`` their per-block PCA
+  (``manifest["pc_blocks"]``) for on-demand costs of transitions that are not edges.
 - ``disp (N, 3) float32`` root displacement over the bar: (dx, dz) metres in the bar's start heading
   frame and dyaw radians; ``radius (N,) float32`` largest horizontal distance (m) of the root from
   its start position during the bar; ``root_path (N, S, 2) float32`` the root's (x, z) in the start
   heading frame at S evenly spaced times; ``duration (N,) float32`` source bar length in seconds.
 - ``indptr (N+1,) int64``, ``indices (E,) int32``, ``costs (E,) float32``: out-edges p → q in
   CSR form, ``indices`` sorted within each row.
-- ``motion_row (N,) int32`` row of the node in ``root (R, F, 3) float32`` (metres, world frame of
-  the source take) and ``rotations (R, F, J, 4) float16`` (local joint rotations, x y z w).
+- ``motion_row (N,) int32`` the node's motion row; row m's frames are ``motion_ptr[m] ..
+  motion_ptr[m+1]`` (``motion_ptr (M+1,) int64``) of ``root (R, 3) float32`` (metres, world frame
+  of the source take) and ``rotations (R, J, 4) float32`` (local joint rotations, x y z w), at
+  ``motion_fps (M,) float32``: the take's frames from about a beat before the bar's downbeat to a
+  beat after its closing downbeat; ``motion_beats (M, 9) float32`` the frames (fractional,
+  counted from the row's first) of the bar's beats -2 .. 6 (``retime.NODE_BEATS``), what the
+  renderer's time-warp and cut choice read (``node_frames``).
+
+Format 2 (this one) stores the ragged frames around each bar; format 1 stored each bar resampled
+to a fixed frame count and is refused with a request to rebuild (``load_graph``).
 """
 
 from __future__ import annotations
@@ -46,10 +54,13 @@ from pathlib import Path
 import numpy as np
 
 from dancegraph.errors import ModelFileError, NotFoundError
+from dancegraph.motion.retime import BEAT0, sample
 from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.store import ObjectStore, file_sha256
 
-FORMAT_VERSION = 2  # 2: signature is a slot pattern (was an index into COMMON_SIGNATURES)
+#: 2: nodes keep their take's frames around the bar with their beats (the renderer's warp and
+#: cut), rotations in float32, ``signature`` a slot pattern (was an index into COMMON_SIGNATURES)
+FORMAT_VERSION = 2
 
 #: node kinds, index = ``node_kind`` value
 KINDS = ("original", "mirror", "blend", "shuffle")
@@ -79,9 +90,15 @@ ARRAYS = (
     "indices",
     "costs",
     "motion_row",
+    "motion_ptr",
+    "motion_beats",
+    "motion_fps",
     "root",
     "rotations",
 )
+
+#: arrays indexed by motion row or stored frame, not by node
+MOTION_ARRAYS = ("motion_ptr", "motion_beats", "motion_fps", "root", "rotations")
 
 _VERSION_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 
@@ -157,16 +174,26 @@ class MotionGraph:
     def degree_in(self) -> np.ndarray:
         return np.bincount(np.asarray(self.indices), minlength=self.n_nodes)
 
-    def node_motion(self, i: int, fps: float | None = None) -> Motion:
-        """The node's bar as a ``Motion`` (F frames spread evenly over the source bar's length;
-        beat k of 4 sits at frame k·F/4). ``fps`` defaults to F / duration."""
+    def node_frames(self, i: int) -> tuple[Motion, np.ndarray]:
+        """The node's stored motion (its take's frames around the bar, at the take's rate) and the
+        frames ``(9,)`` of its beats -2 .. 6 in it: what the renderer warps and cuts."""
         row = int(self.motion_row[i])
-        root = np.asarray(self.root[row], dtype=np.float64)
-        rot = np.asarray(self.rotations[row], dtype=np.float64)
+        a, b = int(self.motion_ptr[row]), int(self.motion_ptr[row + 1])
+        root = np.asarray(self.root[a:b], dtype=np.float64)
+        rot = np.asarray(self.rotations[a:b], dtype=np.float64)
         rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
-        n = root.shape[0]
-        rate = fps if fps is not None else n / float(self.duration[i])
-        return Motion(skeleton=self.skeleton, fps=rate, root_positions=root, rotations=rot)
+        motion = Motion(self.skeleton, float(self.motion_fps[row]), root, rot)
+        return motion, np.asarray(self.motion_beats[row], dtype=np.float64)
+
+    def node_motion(self, i: int, fps: float | None = None) -> Motion:
+        """The node's bar as a ``Motion``: from its downbeat to its closing downbeat (exclusive),
+        at its take's frame rate, or resampled to ``fps``; frame 0 is the downbeat."""
+        motion, beats = self.node_frames(i)
+        rate = motion.fps if fps is None else float(fps)
+        n = max(1, int(round((beats[BEAT0 + 4] - beats[BEAT0]) * rate / motion.fps)))
+        out = sample(motion, beats[BEAT0] + np.arange(n) * motion.fps / rate)
+        out.fps = rate
+        return out
 
     def node_info(self, i: int) -> dict:
         """JSON-able description of node ``i`` (for provenance and the graph-store API)."""
@@ -398,7 +425,8 @@ def load_graph(path: str | os.PathLike, *, verify: bool = False, mmap: bool = Tr
         ) from exc
     if manifest.get("format") != FORMAT_VERSION:
         raise ModelFileError(
-            f"{folder}: graph format {manifest.get('format')!r}, this code reads {FORMAT_VERSION}",
+            f"{folder}: graph format {manifest.get('format')!r}, this code reads {FORMAT_VERSION}; "
+            f"rebuild it: dancegraph dataset build {manifest.get('name') or '<dataset>'}",
             code="graph_version",
             field="format",
         )

@@ -1,12 +1,17 @@
 """Build a motion graph from bars of dance (ChoreoMaster §4, DESIGN.md §4).
 
-Nodes are bars, resampled beat-aligned to ``frames_per_bar`` frames (beat k at frame
-k·F/4), plus augmentations flagged by tag so users can exclude them:
+Every node is one bar of dance stored with the frames of its take from about a beat before its
+downbeat to a beat after its closing downbeat, at the take's own frame rate, and the frames of its
+beats -2 .. 6 in them (``retime.NODE_BEATS``; those outside the bar are the neighbouring bars' where
+they adjoin, else whole beat intervals beyond): all the renderer's time-warp and cut choice need
+(``motion.stitch``, docs/rendering.md). Nodes are the bars plus augmentations flagged by tag so
+users can exclude them:
 
 - ``mirror`` (every bar): the bar mirrored left/right, id ``<clip>:<bar>~m``;
-- ``blend`` (capped): upper body of bar a over the lower body (and root) of bar b, id ``<a>~b<k>``;
-- ``shuffle`` (capped): beats 1–2 of bar a followed by beats 3–4 of bar b (root re-aligned at the
-  seam), id ``<a>~s<k>``;
+- ``blend`` (capped): upper body of bar a, time-warped beat to beat onto bar b, over the lower
+  body (and root) of bar b, id ``<a>~b<k>``;
+- ``shuffle`` (capped): beats 1–2 of bar a followed by beats 3–4 of bar b, joined at a's beat 2
+  by the renderer's own hand-over (root alignment and inertialization), id ``<a>~s<k>``;
 
 blends and shuffles only between bars with the same (nearest common) rhythm signature whose styles
 are close (within the ``style_quantile`` of all pair distances). All augmentations also carry the
@@ -16,16 +21,19 @@ A node's rhythm signature is the slot pattern of its own kinematic beats (the da
 label, ``BarSet.signature``, not snapped to a common signature): a mirror keeps its bar's, a blend
 its upper body's bar's (the pair shares the signature), a shuffle has beats 1–2 of bar a's and
 beats 3–4 of bar b's.
+Style descriptors, motifs and root displacement read each node sampled beat-aligned
+(``frames_per_bar`` samples, beat k at sample k·F/4).
 
-Edges p → q where T = λ8·T_d + λ9·T_z < δT. T_d compares p's last ``window`` frames with the
-``window`` frames that *precede* q in its own take (Kovar et al.'s criterion: q may follow p when
-p ends the way q's true predecessor ends; every bar is resampled with ``lead`` frames before its
-downbeat for this), each window expressed in its own heading frame: position (m), rotation (rad,
-chordal: 2‖Δq‖ ≈ angle for small angles) and velocity (m/s) differences of the main joints,
-summed over the joints and averaged over the transition frames. Each part is
-``sqrt(K/W)·‖Δ‖₂`` over its K joints × W frames, which equals that sum-over-joints,
-mean-over-frames when the per-joint-frame differences are even, and keeps the distance a
-Euclidean norm so a chunk of rows against all columns is three matrix products. Consecutive bars of a take thus cost ≈ λ9·T_z. T_z = ‖z_p − z_q‖ of the style embeddings.
+Edges p → q where T = λ8·T_d + λ9·T_z < δT. T_d is the seam distance the renderer cuts by
+(``stitch.seam_distance`` of ``stitch.seam_features``: main-joint positions, rotations and
+velocities, each node in its own heading frame): between p at phase 4 + o of its bar (dancing on
+past it) and q at phase o (its own lead-in), the least over the offsets o within ``cut_beats`` of
+the bar line in steps of ``cut_step`` beats, where both nodes have the frames (o = 0 always, the
+frames clamped). Velocities are taken at the library's median beat length, the song's tempo being
+unknown at build. So consecutive bars of a take cost ≈ λ9·T_z, and an edge below δT is a
+hand-over the renderer can blend (it searches the same window frame by frame). T_z = ‖z_p − z_q‖
+of the style embeddings. ``entry``/``exit`` keep the features at o = 0 (the bar line) for the
+search's costs of transitions that are not edges.
 Each node keeps at most ``max_out_degree`` cheapest edges; consecutive bars of one take (and their
 mirrors) are always linked at their true cost; a node left without out-edges (or in-edges) gets
 its ``min_degree`` cheapest ones regardless of δT, counted as ``forced`` in the build report.
@@ -44,12 +52,25 @@ from dancegraph.errors import ModelFileError
 from dancegraph.graph import artifact, choreography
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays
-from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
+from dancegraph.motion.mirror import mirror
+from dancegraph.motion.retime import BEAT0, NODE_BEATS, Warp, node_warp
+from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.motion.stitch import (
+    CUT_BEATS,
+    hand_over,
+    main_joint_keys,
+    seam_distance,
+    seam_features,
+)
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits, to_pattern
 from dancegraph.store import ObjectStore
 
 Progress = Callable[[str, float], None]
 PATH_SAMPLES = 8
+#: frames a node keeps beyond its beats -1 and 5 (for velocities at the cut window's ends)
+EDGE_FRAMES = 2
+#: step (beats) of the central differences of the seam features at build
+VELOCITY_STEP_BEATS = 1.0 / 16.0
 
 
 @dataclass
@@ -60,7 +81,8 @@ class BuildParams:
     w_pose: float = 1.0  # λ8
     w_style: float = 1.5  # λ9
     frames_per_bar: int = 48
-    window: int = 4
+    cut_beats: float = CUT_BEATS  # half-width of the cut window around a bar line (beats)
+    cut_step: float = 0.25  # step of the offsets within it (beats)
     max_out_degree: int = 24
     min_degree: int = 2
     mirror: bool = True
@@ -74,65 +96,251 @@ class BuildParams:
     def __post_init__(self) -> None:
         if self.frames_per_bar % 4 or self.frames_per_bar < 16:
             raise ValueError("frames_per_bar must be a multiple of 4, at least 16")
-        if not 1 <= self.window < self.frames_per_bar // 2:
-            raise ValueError("window must be between 1 and frames_per_bar / 2")
+        if not 0.0 <= self.cut_beats <= 1.0:
+            raise ValueError("cut_beats must be between 0 and 1 (beats)")
+        if not 0.0 < self.cut_step <= 1.0:
+            raise ValueError("cut_step must be in (0, 1] beats")
         if self.threshold <= 0:
             raise ValueError("threshold must be positive")
+
+    def offsets(self) -> np.ndarray:
+        """The cut offsets (beats) the edge distance is the least over: 0 first."""
+        k = int(np.floor(self.cut_beats / self.cut_step + 1e-9))
+        steps = np.arange(1, k + 1) * self.cut_step
+        return np.concatenate([[0.0], -steps, steps])
 
 
 @dataclass
 class BarSet:
-    """Bars of dance as arrays, the input of ``build_arrays``.
+    """Bars of dance with the frames of their takes around them, the input of ``build_arrays``.
 
-    ``root (Nb, lead + F, 3)`` metres and ``rotations (Nb, lead + F, J, 4)`` local rotations, each
-    bar resampled beat-aligned with ``lead`` frames before its downbeat; ``clip (Nb,)`` index into
-    ``clips``; ``bar (Nb,)`` bar index in its take; ``duration (Nb,)`` seconds; ``signature``
-    8-character strings, the slots of the bar's kinematic beats (any pattern); ``frames (Nb, 2)``
-    source frame range [start, end) for provenance.
+    Bar i's frames are rows ``ptr[i]:ptr[i+1]`` of ``root (R, 3)`` (metres, the take's world
+    frame) and ``rotations (R, J, 4)`` (local, x y z w) at ``fps[i]``: the take's own frames from
+    ``EDGE_FRAMES`` before its beat -1 to ``EDGE_FRAMES`` after its beat 5 (clipped to the take);
+    ``beats (Nb, 9)`` the frames (fractional, counted from the bar's first row) of its beats
+    -2 .. 6 (``retime.NODE_BEATS``). ``clip (Nb,)`` index into ``clips``; ``bar (Nb,)`` bar index in its take;
+    ``signature`` 8-character strings, the slots of the bar's kinematic beats (any pattern);
+    ``frames (Nb, 2)`` source frame range [start, end) for
+    provenance.
     """
 
     skeleton: Skeleton
     clips: list[str]
     clip: np.ndarray
     bar: np.ndarray
+    ptr: np.ndarray
     root: np.ndarray
     rotations: np.ndarray
-    duration: np.ndarray
+    beats: np.ndarray
+    fps: np.ndarray
     signature: list[str]
     frames: np.ndarray
-    lead: int
     clip_tags: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def duration(self) -> np.ndarray:
+        """``(Nb,)`` seconds from each bar's downbeat to its closing downbeat."""
+        return (self.beats[:, BEAT0 + 4] - self.beats[:, BEAT0]) / self.fps
+
+    @classmethod
+    def from_takes(
+        cls,
+        skeleton: Skeleton,
+        clips: list[str],
+        takes: list[tuple[Motion, np.ndarray, np.ndarray, list[str], np.ndarray]],
+        clip_tags: dict[str, list[str]] | None = None,
+    ) -> BarSet:
+        """Bars of whole takes: per clip of ``clips`` a ``(motion, bar_beats (n, 5) s, bar index
+        (n,), signatures, source frames (n, 2))`` in bar order (``take_bars``)."""
+        roots, rots, beats, fps, clip, bar, sig, frames, ptr = [], [], [], [], [], [], [], [], [0]
+        for c, (motion, bar_beats, index, sigs, fr) in enumerate(takes):
+            b7, spans = take_bars(motion, bar_beats)
+            for lo, hi in spans:
+                roots.append(motion.root_positions[lo:hi])
+                rots.append(motion.rotations[lo:hi].astype(np.float32))
+                ptr.append(ptr[-1] + hi - lo)
+            beats.append(b7)
+            fps.append(np.full(len(spans), motion.fps))
+            clip.append(np.full(len(spans), c))
+            bar.append(np.asarray(index))
+            sig.extend(sigs)
+            frames.append(np.asarray(fr).reshape(-1, 2))
+        if not roots:
+            raise ValueError("no bars to build from")
+        return cls(
+            skeleton=skeleton,
+            clips=list(clips),
+            clip=np.concatenate(clip),
+            bar=np.concatenate(bar),
+            ptr=np.asarray(ptr, dtype=np.int64),
+            root=np.concatenate(roots),
+            rotations=np.concatenate(rots),
+            beats=np.concatenate(beats),
+            fps=np.concatenate(fps),
+            signature=sig,
+            frames=np.concatenate(frames),
+            clip_tags=dict(clip_tags or {}),
+        )
+
+
+def take_bars(motion: Motion, bar_beats: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Where each bar of a take lies in its frames: ``(beats (n, 9), spans [(lo, hi)])``.
+
+    ``bar_beats (n, 5)``: the bars' beat times (s) in take order. Beats -2 and -1 of a bar are the
+    previous bar's beats 2 and 3 where that bar ends on this one's downbeat (else whole first-beat
+    intervals before the downbeat); beats 5 and 6 likewise the next bar's beats 1 and 2. So two
+    adjoining bars of a take warp their shared beats alike. A bar's span is ``[lo, hi)`` frames
+    from ``EDGE_FRAMES`` before its beat -1 to ``EDGE_FRAMES`` after beat 5, clipped to the take,
+    and its beats are frames counted from ``lo``.
+    """
+    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    n = len(bb)
+    if n == 0:
+        return np.zeros((0, len(NODE_BEATS))), []
+    tol = 0.25 * np.median(np.diff(bb, axis=1))
+    first, last = bb[:, 1] - bb[:, 0], bb[:, 4] - bb[:, 3]
+    before = bb[:, :1] - first[:, None] * np.array([2.0, 1.0])  # beats -2, -1
+    after = bb[:, 4:] + last[:, None] * np.array([1.0, 2.0])  # beats 5, 6
+    if n > 1:
+        adjoin = (np.abs(bb[:-1, 4] - bb[1:, 0]) <= tol)[:, None]
+        before[1:] = np.where(adjoin, bb[:-1, 2:4], before[1:])
+        after[:-1] = np.where(adjoin, bb[1:, 1:3], after[:-1])
+    beats = np.concatenate([before, bb, after], axis=1) * motion.fps
+    lo = np.floor(beats[:, BEAT0 - 1]).astype(np.int64) - EDGE_FRAMES
+    lo = np.clip(lo, 0, motion.n_frames - 1)
+    hi = np.ceil(beats[:, BEAT0 + 5]).astype(np.int64) + EDGE_FRAMES + 1
+    hi = np.clip(hi, lo + 1, motion.n_frames)
+    return beats - lo[:, None], list(zip(lo.tolist(), hi.tolist(), strict=True))
 
 
 # --------------------------------------------------------------------------------------------
-# resampling and augmentation
+# node motion: ragged frames
 
 
-def beat_sample_times(beat_times: np.ndarray, n: int, lead: int = 0) -> np.ndarray:
-    """``(lead + n,)`` times (s): ``lead`` samples before the downbeat at the first beat's rate,
-    then n/4 samples evenly over each of the 4 beats in ``beat_times (5,)``."""
-    beat_times = np.asarray(beat_times, dtype=float)
-    per = n // 4
-    frac = np.arange(per) / per
-    bar = (beat_times[:4, None] + frac[None, :] * np.diff(beat_times)[:, None]).reshape(-1)
-    step = (beat_times[1] - beat_times[0]) / per
-    return np.concatenate([beat_times[0] - step * np.arange(lead, 0, -1), bar])
+@dataclass
+class _Nodes:
+    """Per-node frames (ragged, like ``BarSet``): the originals and every augmentation."""
+
+    ptr: np.ndarray
+    root: np.ndarray
+    rotations: np.ndarray
+    beats: np.ndarray
+    fps: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.beats)
+
+    def frames(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        a, b = self.ptr[i], self.ptr[i + 1]
+        return self.root[a:b], self.rotations[a:b]
+
+    def sample(self, node: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Nodes ``node (M,)`` at their fractional frames ``frames (M,)`` (clamped to each node's
+        frames): ``root (M, 3)``, ``rotations (M, J, 4)``, ``inside (M,)`` (not clamped)."""
+        first, last = self.ptr[node], self.ptr[node + 1] - 1
+        f = first + frames
+        inside = (frames >= 0.0) & (f <= last)
+        f = np.clip(f, first, last)
+        lo = np.floor(f).astype(np.int64)
+        hi = np.minimum(lo + 1, last)
+        t = f - lo
+        root = self.root[lo] + t[:, None] * (self.root[hi] - self.root[lo])
+        rot = quat.slerp(
+            self.rotations[lo].astype(np.float64), self.rotations[hi].astype(np.float64), t[:, None]
+        )
+        return root, rot, inside
+
+    def at_phases(self, node: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Every node of ``node (M,)`` at bar phases ``phases (M, P)`` (beats, through its own
+        ``node_warp``): ``root (M, P, 3)``, ``rotations (M, P, J, 4)``, ``inside (M, P)``."""
+        m, p = phases.shape
+        frames = np.stack([node_warp(self.beats[i])(phases[k]) for k, i in enumerate(node)])
+        root, rot, inside = self.sample(np.repeat(node, p), frames.reshape(-1))
+        return root.reshape(m, p, 3), rot.reshape(m, p, *rot.shape[1:]), inside.reshape(m, p)
 
 
-def resample(
-    root: np.ndarray, rotations: np.ndarray, fps: float, times: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sample a take (``root (F, 3)``, ``rotations (F, J, 4)`` at ``fps``) at ``times (n,)`` s:
-    linear for the root, slerp for rotations; times outside the take are clamped."""
-    f = np.clip(np.asarray(times) * fps, 0.0, root.shape[0] - 1.0)
-    i0 = np.floor(f).astype(int)
-    i1 = np.minimum(i0 + 1, root.shape[0] - 1)
-    t = f - i0
-    r = root[i0] * (1 - t)[:, None] + root[i1] * t[:, None]
-    q = quat.slerp(
-        rotations[i0], rotations[i1], np.broadcast_to(t[:, None], rotations[i0].shape[:2])
+def _concat(parts: list[_Nodes]) -> _Nodes:
+    sizes = [p.root.shape[0] for p in parts]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    ptr = np.concatenate(
+        [parts[0].ptr[:1]] + [p.ptr[1:] + o for p, o in zip(parts, offsets, strict=True)]
     )
-    return r, q
+    return _Nodes(
+        ptr=ptr,
+        root=np.concatenate([p.root for p in parts]),
+        rotations=np.concatenate([p.rotations for p in parts]),
+        beats=np.concatenate([p.beats for p in parts]),
+        fps=np.concatenate([p.fps for p in parts]),
+    )
+
+
+def _from_list(items: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> _Nodes:
+    sizes = [len(r) for r, _, _, _ in items]
+    return _Nodes(
+        ptr=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+        root=np.concatenate([r for r, _, _, _ in items]),
+        rotations=np.concatenate([q for _, q, _, _ in items]).astype(np.float32),
+        beats=np.stack([b for _, _, b, _ in items]),
+        fps=np.array([f for _, _, _, f in items], dtype=float),
+    )
+
+
+def _mirrored(skeleton: Skeleton, nodes: _Nodes) -> _Nodes:
+    """Every node mirrored left/right (same beats)."""
+    m = mirror(Motion(skeleton, 30.0, nodes.root, nodes.rotations))
+    return _Nodes(
+        nodes.ptr.copy(),
+        m.root_positions,
+        m.rotations.astype(np.float32),
+        nodes.beats.copy(),
+        nodes.fps.copy(),
+    )
+
+
+def _blended(nodes: _Nodes, a: int, b: int, lower: np.ndarray) -> tuple:
+    """Bar a's upper body over bar b's lower body and root: b's frames and beats, a's upper-body
+    rotations time-warped onto them beat to beat (the renderer's warp)."""
+    root, rot = nodes.frames(b)
+    to_a = Warp(nodes.beats[b], nodes.beats[a])(np.arange(len(root), dtype=float))
+    _, upper, _ = nodes.sample(np.full(len(root), a), to_a)
+    out = rot.astype(np.float64).copy()
+    out[:, ~lower] = upper[:, ~lower]
+    return root.copy(), out, nodes.beats[b].copy(), float(nodes.fps[b])
+
+
+def _shuffled(skeleton: Skeleton, nodes: _Nodes, a: int, b: int) -> tuple:
+    """Bar a up to its beat 2, then bar b from its beat 2 on (its own frames, shifted by whole
+    frames, so it runs on into b's next bar unchanged), joined at a's beat 2 by the renderer's
+    hand-over (b's root continues a's; offsets inertialized)."""
+    root_a, rot_a = nodes.frames(a)
+    root_b, rot_b = nodes.frames(b)
+    two = BEAT0 + 2
+    cut = int(np.floor(nodes.beats[a, two])) + 1  # a's first frame after its beat 2
+    shift = int(round(nodes.beats[b, two] - nodes.beats[a, two]))  # b's frame = ours + shift
+    if cut - 1 + shift < 0 or cut + 2 > len(root_a) or cut + 2 + shift > len(root_b):
+        raise ValueError("a shuffle needs frames on both sides of the join")
+    fps = float(nodes.fps[a])
+
+    def part(root: np.ndarray, rot: np.ndarray, lo: int, hi: int | None = None) -> Motion:
+        return Motion(skeleton, fps, root[lo:hi].astype(float), rot[lo:hi].astype(float))
+
+    # the offsets are gone two frames before b's closing downbeat: from there on it is b's take
+    most = int(np.floor(nodes.beats[b, BEAT0 + 4])) - 2 - (cut + shift)
+    joined, _, _ = hand_over(
+        part(root_a, rot_a, cut - 1, cut + 2),
+        part(root_b, rot_b, cut - 1 + shift, cut + 2 + shift),
+        part(root_b, rot_b, cut + shift),
+        most=max(most, 1),
+    )
+    root = np.concatenate([root_a[:cut], joined.root_positions])
+    rot = np.concatenate([rot_a[:cut].astype(np.float64), joined.rotations])
+    beats = np.concatenate([nodes.beats[a, : two + 1], nodes.beats[b, two + 1 :] - shift])
+    return root, rot, beats, fps
+
+
+# --------------------------------------------------------------------------------------------
+# augmentation
 
 
 def _lower_body(skeleton: Skeleton) -> np.ndarray:
@@ -148,58 +356,6 @@ def _lower_body(skeleton: Skeleton) -> np.ndarray:
             mask[j] = True
             stack.extend(skeleton.children(j))
     return mask
-
-
-def _yaw(rot_root: np.ndarray) -> np.ndarray:
-    return quat.heading_angle(rot_root)
-
-
-def _shuffle_motion(
-    root_a: np.ndarray,
-    rot_a: np.ndarray,
-    root_b: np.ndarray,
-    rot_b: np.ndarray,
-    lead: int,
-    blend: int = 4,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Beats 1–2 of bar a (with its lead frames) then beats 3–4 of bar b, b re-aligned (position,
-    heading) at the seam; arrays ``(lead + F, ...)``."""
-    n = root_a.shape[0]
-    h = lead + (n - lead) // 2
-    yaw_a = _yaw(rot_a[h - 1, 0])
-    yaw_b = _yaw(rot_b[h, 0])
-    turn = quat.from_y_angle(yaw_a - yaw_b)
-    step = root_a[h - 1] - root_a[h - 2]
-    rel = root_b[h:] - root_b[h]
-    rel = quat.rotate(np.broadcast_to(turn, rel.shape[:-1] + (4,)), rel)
-    start = root_a[h - 1] + step
-    start[1] = root_b[h, 1]
-    root = np.concatenate([root_a[:h], start + rel])
-    rot = np.concatenate([rot_a[:h], rot_b[h:]]).copy()
-    rot[h:, 0] = quat.multiply(np.broadcast_to(turn, rot[h:, 0].shape), rot[h:, 0])
-    # short cross-fade after the seam so joints do not jump
-    for k in range(blend):
-        w = (k + 1) / (blend + 1)
-        rot[h + k] = quat.slerp(rot[h - 1], rot[h + k], np.full(rot.shape[1], w))
-    return root, rot
-
-
-def _mirror_bars(
-    skeleton: Skeleton, root: np.ndarray, rot: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Mirror bars ``root (N, F, 3)``, ``rot (N, F, J, 4)`` left/right (all frames at once)."""
-    from dancegraph.motion.mirror import mirror
-
-    n, f = root.shape[:2]
-    m = mirror(
-        Motion(
-            skeleton=skeleton,
-            fps=30.0,
-            root_positions=root.reshape(n * f, 3),
-            rotations=rot.reshape(n * f, *rot.shape[2:]),
-        )
-    )
-    return m.root_positions.reshape(root.shape), m.rotations.reshape(rot.shape)
 
 
 def _augment_pairs(
@@ -238,10 +394,6 @@ def _augment_pairs(
 # node features
 
 
-def main_joint_keys(skeleton: Skeleton) -> list[str]:
-    return [k for k in CANONICAL_JOINTS if k in skeleton.canonical]
-
-
 def _to_local(points: np.ndarray, origin: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """Points ``(N, W, K, 3)`` into frames at ``origin (N, 3)`` (x, z only) turned by ``-yaw (N,)``."""
     shifted = (
@@ -254,80 +406,76 @@ def _to_local(points: np.ndarray, origin: np.ndarray, yaw: np.ndarray) -> np.nda
     return np.stack([x * c + z * s, shifted[..., 1], -x * s + z * c], axis=-1)
 
 
-def node_features(
-    skeleton: Skeleton,
-    root: np.ndarray,
-    rotations: np.ndarray,
-    duration: np.ndarray,
-    window: int,
-    lead: int,
+def bar_samples(
+    skeleton: Skeleton, nodes: _Nodes, frames_per_bar: int, chunk: int = 256
 ) -> dict[str, np.ndarray]:
-    """Per-node features from bars ``root (N, lead + F, 3)``, ``rotations (N, lead + F, J, 4)``
-    (``lead`` frames before the downbeat, then the bar) and ``duration (N,)`` seconds.
-
-    Returns ``entry (N, D)``: the ``window`` frames before the bar; ``exit (N, D)``: the bar's last
-    ``window`` frames (blocks in ``"blocks"``); ``positions (N, F, K, 3)`` main-joint world
-    positions over the bar; ``disp (N, 3)``, ``radius (N,)``, ``path (N, S, 2)``.
-    """
-    if lead < window + 1:
-        raise ValueError("lead must be at least window + 1 frames")
-    n, f_ext = root.shape[:2]
-    f = f_ext - lead
+    """Every node sampled beat-aligned over its bar: beat k at sample k·F/4 (F =
+    ``frames_per_bar``), plus the closing downbeat. Returns ``root (N, F, 3)``, ``root_rot (N, F,
+    4)`` (the root's rotation), ``positions (N, F, K, 3)`` main-joint world positions, ``disp
+    (N, 3)`` the root's displacement to the closing downbeat (dx, dz in the bar's start heading
+    frame, dyaw), ``radius (N,)`` and ``root_path (N, S, 2)``."""
     keys = main_joint_keys(skeleton)
-    joints = np.array([skeleton.index(k) for k in keys])
-    pos_w, rot_w = fk_arrays(
-        skeleton, root.reshape(n * f_ext, 3), rotations.reshape(n * f_ext, -1, 4).astype(np.float64)
-    )
-    main = canonical_positions(skeleton, pos_w, rot_w, keys).reshape(n, f_ext, len(keys), 3)
-    yaw = _yaw(rot_w[:, 0]).reshape(n, f_ext)
-    dt = np.asarray(duration, dtype=float) / f
-
-    def window_features(vel_frames: np.ndarray, pose_frames: np.ndarray, ref: int) -> np.ndarray:
-        # positions/rotations on pose_frames (W,), velocities over vel_frames (W+1,), all in the
-        # heading frame of frame ``ref``
-        local = _to_local(main[:, vel_frames], root[:, ref], yaw[:, ref])
-        vel = np.diff(local, axis=1) / dt[:, None, None, None]
-        pos = _to_local(main[:, pose_frames], root[:, ref], yaw[:, ref])
-        rot = rotations[:, pose_frames][:, :, joints].astype(np.float64)
-        # root rotation without its heading: heading is free (root alignment when stitching)
-        unturn = quat.from_y_angle(-yaw[:, ref])[:, None, :]
-        rot[:, :, 0] = quat.multiply(np.broadcast_to(unturn, rot[:, :, 0].shape), rot[:, :, 0])
-        rot = np.where(rot[..., 3:4] < 0, -rot, rot) * 2.0
-        # sum over the main joints, mean over the transition frames (see the module docstring)
-        scale = np.sqrt(len(keys) / window)
-        return np.concatenate(
-            [pos.reshape(n, -1) * scale, rot.reshape(n, -1) * scale, vel.reshape(n, -1) * scale],
-            axis=1,
-        )
-
-    entry = window_features(
-        np.arange(lead - window - 1, lead), np.arange(lead - window, lead), lead - window
-    )
-    exit_ = window_features(
-        np.arange(f_ext - window - 1, f_ext), np.arange(f_ext - window, f_ext), f_ext - window
-    )
-    # the rest describes the bar itself
-    root, yaw, main = root[:, lead:], yaw[:, lead:], main[:, lead:]
-    k = len(keys)
-    blocks = [window * k * 3, window * k * 4, window * k * 3]
-    # root displacement and path in the bar's start heading frame
-    origin = root[:, 0]
-    local_root = _to_local(root[:, :, None, :], origin, yaw[:, 0])[:, :, 0]
-    end = 2 * local_root[:, -1] - local_root[:, -2]  # where the next bar's first frame lands
-    dyaw = np.angle(np.exp(1j * (2 * yaw[:, -1] - yaw[:, -2] - yaw[:, 0])))
-    disp = np.stack([end[:, 0], end[:, 2], dyaw], axis=1)
-    radius = np.linalg.norm(local_root[:, :, [0, 2]], axis=-1).max(axis=1)
+    phases = np.arange(frames_per_bar + 1) * 4.0 / frames_per_bar
+    roots, root_rots, mains = [], [], []
+    for a in range(0, nodes.n, chunk):
+        idx = np.arange(a, min(nodes.n, a + chunk))
+        root, rot, _ = nodes.at_phases(idx, np.broadcast_to(phases, (len(idx), len(phases))))
+        m, p = root.shape[:2]
+        pos, world = fk_arrays(skeleton, root.reshape(-1, 3), rot.reshape(m * p, -1, 4))
+        mains.append(canonical_positions(skeleton, pos, world, keys).reshape(m, p, len(keys), 3))
+        roots.append(root)
+        root_rots.append(rot[:, :, 0])
+    root = np.concatenate(roots)
+    root_rot = np.concatenate(root_rots)
+    main = np.concatenate(mains)
+    yaw = quat.heading_angle(root_rot)
+    local_root = _to_local(root[:, :, None, :], root[:, 0], yaw[:, 0])[:, :, 0]
+    end = local_root[:, -1]  # where the next bar's first frame lands
+    dyaw = np.angle(np.exp(1j * (yaw[:, -1] - yaw[:, 0])))
+    f = frames_per_bar
     idx = np.linspace(0, f, PATH_SAMPLES, endpoint=False).astype(int)
-    path = local_root[:, idx][:, :, [0, 2]]
     return {
-        "entry": entry.astype(np.float32),
-        "exit": exit_.astype(np.float32),
-        "blocks": np.array(blocks),
-        "positions": main,
-        "disp": disp.astype(np.float32),
-        "radius": radius.astype(np.float32),
-        "root_path": path.astype(np.float32),
+        "root": root[:, :f],
+        "root_rot": root_rot[:, :f],
+        "positions": main[:, :f],
+        "disp": np.stack([end[:, 0], end[:, 2], dyaw], axis=1).astype(np.float32),
+        "radius": np.linalg.norm(local_root[:, :f, [0, 2]], axis=-1).max(axis=1).astype(np.float32),
+        "root_path": local_root[:, idx][:, :, [0, 2]].astype(np.float32),
     }
+
+
+def transition_features(
+    skeleton: Skeleton, nodes: _Nodes, offsets: np.ndarray, beat_s: float, chunk: int = 256
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Seam features of every node at the cut offsets: ``exit (O, N, D)`` at bar phase 4 + o
+    (dancing on past the bar), ``entry (O, N, D)`` at phase o (the lead-in), for o in ``offsets
+    (O,)`` beats; velocities over ±``VELOCITY_STEP_BEATS`` at ``beat_s`` seconds per beat. Rows
+    whose frames the node does not have are NaN (never at o = 0: clamped there). Returns exit,
+    entry and the feature blocks."""
+    h = VELOCITY_STEP_BEATS
+    out = {}
+    blocks: list[int] = []
+    for side, base in (("exit", 4.0), ("entry", 0.0)):
+        centre = base + np.asarray(offsets, dtype=float)  # (O,)
+        trip = (centre[:, None] + np.array([-h, 0.0, h])[None, :]).reshape(-1)  # (O*3,)
+        rows = []
+        for a in range(0, nodes.n, chunk):
+            idx = np.arange(a, min(nodes.n, a + chunk))
+            root, rot, inside = nodes.at_phases(idx, np.broadcast_to(trip, (len(idx), len(trip))))
+            m, o = len(idx), len(centre)
+            feats, blocks = seam_features(
+                skeleton,
+                root.reshape(m * o, 3, 3),
+                rot.reshape(m * o, 3, *rot.shape[2:]),
+                h * beat_s,
+            )
+            feats = feats[:, 0].reshape(m, o, -1)
+            ok = np.asarray(inside.reshape(m, o, 3).all(axis=2))
+            ok[:, np.asarray(offsets) == 0.0] = True
+            feats[~ok] = np.nan
+            rows.append(feats.transpose(1, 0, 2))
+        out[side] = np.concatenate(rows, axis=1)
+    return out["exit"], out["entry"], blocks
 
 
 # --------------------------------------------------------------------------------------------
@@ -335,7 +483,8 @@ def node_features(
 
 
 def _block_distance(a: np.ndarray, b: np.ndarray, blocks: list[int]) -> np.ndarray:
-    """Σ over blocks of ‖a_blk − b_blk‖ for rows ``a (m, D)`` against rows ``b (n, D)`` → (m, n)."""
+    """Σ over blocks of ‖a_blk − b_blk‖ for rows ``a (m, D)`` against rows ``b (n, D)`` → (m, n)
+    (``stitch.seam_distance`` of every pair; NaN rows give NaN)."""
     out = np.zeros((a.shape[0], b.shape[0]), dtype=np.float32)
     start = 0
     for size in blocks:
@@ -356,14 +505,11 @@ def pair_cost(
     w_pose: float,
     w_style: float,
 ) -> np.ndarray:
-    """T = λ8·T_d + λ9·T_z for paired rows: ``exit_p (n, D)`` with ``entry_q (n, D)`` → (n,)."""
-    t_d = np.zeros(exit_p.shape[0])
-    start = 0
-    for size in blocks:
-        t_d += np.linalg.norm(
-            exit_p[:, start : start + size] - entry_q[:, start : start + size], axis=1
-        )
-        start += size
+    """T = λ8·T_d + λ9·T_z for paired rows ``exit_p``, ``entry_q`` ``(n, D)`` or, over cut
+    offsets, ``(O, n, D)`` (T_d the least over the offsets where both rows exist) → (n,)."""
+    t_d = seam_distance(np.asarray(exit_p), np.asarray(entry_q), blocks)
+    if t_d.ndim == 2:
+        t_d = np.nanmin(t_d, axis=0)
     return w_pose * t_d + w_style * np.linalg.norm(style_p - style_q, axis=1)
 
 
@@ -378,9 +524,12 @@ def compute_edges(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Edges ``(src, dst, cost)`` sorted by (src, dst), and a report.
 
-    ``forced (M, 2)``: pairs always linked at their true cost (consecutive bars of a take).
+    ``entry``, ``exit_ (O, N, D)``: transition features at the cut offsets
+    (``transition_features``; NaN where a node has no frames); the pose term of p → q is the
+    least over the offsets. ``forced (M, 2)``: pairs always linked at their true cost
+    (consecutive bars of a take).
     """
-    n = entry.shape[0]
+    n = entry.shape[1]
     k = params.max_out_degree
     srcs, dsts, costs = [], [], []
     best_in = np.full((n, params.min_degree), np.inf, dtype=np.float32)
@@ -389,7 +538,10 @@ def compute_edges(
     forced_out = 0
     for i0 in range(0, n, params.chunk):
         i1 = min(n, i0 + params.chunk)
-        c = params.w_pose * _block_distance(exit_[i0:i1], entry, blocks)
+        c = _block_distance(exit_[0, i0:i1], entry[0], blocks)
+        for o in range(1, entry.shape[0]):
+            c = np.fmin(c, _block_distance(exit_[o, i0:i1], entry[o], blocks))
+        c = params.w_pose * np.nan_to_num(c, nan=np.inf)
         sq = (
             (style[i0:i1] ** 2).sum(1)[:, None]
             + (style**2).sum(1)[None, :]
@@ -444,7 +596,7 @@ def compute_edges(
     if len(forced):
         fp, fq = forced[:, 0], forced[:, 1]
         fc = pair_cost(
-            exit_[fp], entry[fq], style[fp], style[fq], blocks, params.w_pose, params.w_style
+            exit_[:, fp], entry[:, fq], style[fp], style[fq], blocks, params.w_pose, params.w_style
         )
         extra_s.extend(fp.tolist())
         extra_d.extend(fq.tolist())
@@ -462,7 +614,7 @@ def compute_edges(
         sl = slice(a, a + (1 << 15))
         ps, qs = src[sl], dst[sl]
         cost[sl] = pair_cost(
-            exit_[ps], entry[qs], style[ps], style[qs], blocks, params.w_pose, params.w_style
+            exit_[:, ps], entry[:, qs], style[ps], style[qs], blocks, params.w_pose, params.w_style
         )
     report = {
         "pairs_below_threshold": below,
@@ -496,7 +648,7 @@ def compress_features(
     axes of the two stacked (one shared mean and basis, so differences are preserved up to the
     dropped variance). Returns ``entry_pc``, ``exit_pc (N, Σ dims) float32`` and their block sizes.
     The graph's edges keep their exact costs; only transitions that are not edges (between
-    structure copies) are costed from these, reading ~8× less memory.
+    structure copies) are costed from these, reading about half the memory.
     """
     outs_e, outs_x, sizes = [], [], []
     start = 0
@@ -540,15 +692,19 @@ def build_arrays(
         raise ValueError("a graph needs at least 2 bars")
     clip = np.asarray(bars.clip, dtype=np.int32)
     bar = np.asarray(bars.bar, dtype=np.int32)
-    root = np.asarray(bars.root, dtype=np.float64)
-    rot = np.asarray(bars.rotations, dtype=np.float64)
     dur = np.asarray(bars.duration, dtype=np.float64)
     sigs = list(bars.signature)
+    originals = _Nodes(
+        ptr=np.asarray(bars.ptr, dtype=np.int64),
+        root=np.asarray(bars.root, dtype=np.float64),
+        rotations=np.asarray(bars.rotations, dtype=np.float32),
+        beats=np.asarray(bars.beats, dtype=np.float64),
+        fps=np.asarray(bars.fps, dtype=np.float64),
+    )
 
     # originals first: their style decides which pairs may blend or shuffle
-    lead = int(bars.lead)
-    feats0 = node_features(sk, root, rot, dur, params.window, lead)
-    raw0 = descriptor.dance_descriptors(feats0["positions"], dur)
+    samples0 = bar_samples(sk, originals, params.frames_per_bar)
+    raw0 = descriptor.dance_descriptors(samples0["positions"], dur)
     stats = descriptor.fit_stats(raw0)
     style0 = descriptor.embed(raw0, stats)
     embedding = {"version": descriptor.VERSION, "dance_stats": stats}
@@ -560,14 +716,12 @@ def build_arrays(
         if got["style"] is not None:
             style0 = got["style"]
 
+    parts = [originals]
     kinds = [np.zeros(nb, np.int8)]
     sources = [np.stack([np.arange(nb), np.full(nb, -1)], axis=1)]
-    roots, rots = [root], [rot]
     clips_, bars_, sig_, aug_no = [clip], [bar], [sigs], [np.zeros(nb, np.int32)]
     if params.mirror:
-        mr, mq = _mirror_bars(sk, root, rot)
-        roots.append(mr)
-        rots.append(mq)
+        parts.append(_mirrored(sk, originals))
         kinds.append(np.ones(nb, np.int8))
         sources.append(sources[0].copy())
         clips_.append(clip)
@@ -577,66 +731,44 @@ def build_arrays(
     lower = _lower_body(sk)
     # pairs to blend or shuffle share the nearest common signature
     common = [COMMON_SIGNATURES[k] for k in nearest_common(np.stack([to_bits(x) for x in sigs]))]
-    blend_pairs = _augment_pairs(
-        style0, common, clip, params.style_quantile, int(params.blend_ratio * nb), params.seed
-    )
-    if blend_pairs:
-        a = np.array([p[0] for p in blend_pairs])
-        b = np.array([p[1] for p in blend_pairs])
-        br = root[b].copy()
-        bq = rot[a].copy()
-        bq[:, :, lower] = rot[b][:, :, lower]
-        roots.append(br)
-        rots.append(bq)
-        kinds.append(np.full(len(a), 2, np.int8))
+    for kind_no, ratio, seed in (
+        (2, params.blend_ratio, params.seed),
+        (3, params.shuffle_ratio, params.seed + 1),
+    ):
+        pairs = _augment_pairs(style0, common, clip, params.style_quantile, int(ratio * nb), seed)
+        if not pairs:
+            continue
+        if kind_no == 2:
+            made = [_blended(originals, i, j, lower) for i, j in pairs]
+        else:
+            made = [_shuffled(sk, originals, i, j) for i, j in pairs]
+        a = np.array([p[0] for p in pairs])
+        b = np.array([p[1] for p in pairs])
+        parts.append(_from_list(made))
+        kinds.append(np.full(len(a), kind_no, np.int8))
         sources.append(np.stack([a, b], axis=1))
         clips_.append(clip[a])
         bars_.append(bar[a])
-        sig_.append([sigs[i] for i in a])
-        aug_no.append(np.arange(len(a), dtype=np.int32))
-    shuffle_pairs = _augment_pairs(
-        style0, common, clip, params.style_quantile, int(params.shuffle_ratio * nb), params.seed + 1
-    )
-    if shuffle_pairs:
-        sr, sq = [], []
-        for i, j in shuffle_pairs:
-            r_, q_ = _shuffle_motion(root[i], rot[i], root[j], rot[j], lead)
-            sr.append(r_)
-            sq.append(q_)
-        a = np.array([p[0] for p in shuffle_pairs])
-        b = np.array([p[1] for p in shuffle_pairs])
-        roots.append(np.stack(sr))
-        rots.append(np.stack(sq))
-        kinds.append(np.full(len(a), 3, np.int8))
-        sources.append(np.stack([a, b], axis=1))
-        clips_.append(clip[a])
-        bars_.append(bar[a])
-        # slots 0-3 (beats 1-2) of a, 4-7 of b; a signature string has slot 0 rightmost
-        sig_.append([sigs[j][:4] + sigs[i][4:] for i, j in zip(a, b, strict=True)])
+        if kind_no == 2:
+            sig_.append([sigs[i] for i in a])
+        else:  # slots 0-3 (beats 1-2) of a, 4-7 of b; a signature string has slot 0 rightmost
+            sig_.append([sigs[j][:4] + sigs[i][4:] for i, j in zip(a, b, strict=True)])
         aug_no.append(np.arange(len(a), dtype=np.int32))
     if progress:
         progress("augment", 1.0)
 
+    nodes = _concat(parts) if len(parts) > 1 else originals
     kind = np.concatenate(kinds)
-    n = kind.shape[0]
-    all_root = np.concatenate(roots)
-    all_rot = np.concatenate(rots)
-    all_dur = np.concatenate(
-        [dur]
-        + [
-            dur[s[:, 1] if k[0] == 2 else s[:, 0]]
-            for k, s in zip(kinds[1:], sources[1:], strict=True)
-        ]
-    )
-    feats = node_features(sk, all_root, all_rot, all_dur, params.window, lead) if n > nb else feats0
-    all_root, all_rot = all_root[:, lead:], all_rot[:, lead:]  # nodes keep the bar itself
+    n = nodes.n
+    all_dur = (nodes.beats[:, BEAT0 + 4] - nodes.beats[:, BEAT0]) / nodes.fps
+    samples = bar_samples(sk, nodes, params.frames_per_bar) if n > nb else samples0
     if "style_model" in embedding:  # augmentations keep the learned style of their source bar
         style = style0[np.concatenate(sources)[:, 0]]
     else:
-        style = descriptor.embed(descriptor.dance_descriptors(feats["positions"], all_dur), stats)
+        style = descriptor.embed(descriptor.dance_descriptors(samples["positions"], all_dur), stats)
         style[:nb] = style0
     if progress:
-        progress("features", 1.0)
+        progress("features", 0.5)
 
     # tags: base tags + clip flags
     flag_names = sorted(
@@ -662,14 +794,21 @@ def build_arrays(
     takes = [np.nonzero(clip == c)[0] for c in range(len(bars.clips))]
     takes = [t[np.argsort(bar[t])] for t in takes if t.size]
     motifs = choreography.fit_motifs(
-        feats["positions"],
-        all_root,
-        all_rot[:, :, 0],
+        samples["positions"],
+        samples["root"],
+        samples["root_rot"],
         kind == 0,
         params.n_motifs,
         params.seed,
         take_sequences=takes,
     )
+
+    # the seam distance at the cut offsets; velocities at the library's median beat
+    beat_s = float(np.median(dur)) / 4.0
+    offsets = params.offsets()
+    exit_, entry, blocks = transition_features(sk, nodes, offsets, beat_s)
+    if progress:
+        progress("features", 1.0)
 
     # consecutive bars of one take (and their mirrors) are always linked
     nxt = {(int(c), int(b)): i for i, (c, b) in enumerate(zip(clip, bar, strict=True))}
@@ -681,12 +820,11 @@ def build_arrays(
     if params.mirror:
         forced += [(p + nb, q + nb) for p, q in forced]
     forced_arr = np.array(forced, dtype=np.int64).reshape(-1, 2)
-    blocks = [int(b) for b in feats["blocks"]]
     src, dst, cost, report = compute_edges(
-        feats["entry"], feats["exit"], style, blocks, params, forced_arr, progress
+        entry, exit_, style, blocks, params, forced_arr, progress
     )
     indptr, indices, costs = to_csr(n, src, dst, cost)
-    entry_pc, exit_pc, pc_blocks = compress_features(feats["entry"], feats["exit"], blocks)
+    entry_pc, exit_pc, pc_blocks = compress_features(entry[0], exit_[0], blocks)
 
     ids = []
     node_bar = np.concatenate(bars_).astype(np.int32)
@@ -706,20 +844,23 @@ def build_arrays(
         "style": style.astype(np.float32),
         "signature": signature,
         "motif": motifs["labels"].astype(np.int32),
-        "entry": feats["entry"],
-        "exit": feats["exit"],
+        "entry": entry[0],
+        "exit": exit_[0],
         "entry_pc": entry_pc,
         "exit_pc": exit_pc,
-        "disp": feats["disp"],
-        "radius": feats["radius"],
-        "root_path": feats["root_path"],
+        "disp": samples["disp"],
+        "radius": samples["radius"],
+        "root_path": samples["root_path"],
         "duration": all_dur.astype(np.float32),
         "indptr": indptr,
         "indices": indices,
         "costs": costs,
         "motion_row": np.arange(n, dtype=np.int32),
-        "root": all_root.astype(np.float32),
-        "rotations": all_rot.astype(np.float16),
+        "motion_ptr": nodes.ptr.astype(np.int64),
+        "motion_beats": nodes.beats.astype(np.float32),
+        "motion_fps": nodes.fps.astype(np.float32),
+        "root": nodes.root.astype(np.float32),
+        "rotations": nodes.rotations.astype(np.float32),
     }
     manifest = {
         "clips": list(bars.clips),
@@ -730,6 +871,12 @@ def build_arrays(
         "feature_blocks": blocks,
         "pc_blocks": pc_blocks,
         "main_joints": main_joint_keys(sk),
+        "seam": {
+            "cut_beats": params.cut_beats,
+            "offsets": offsets.tolist(),
+            "beat_s": beat_s,
+            "velocity_step_beats": VELOCITY_STEP_BEATS,
+        },
         "bar_frames": {
             name: {
                 str(int(b)): [int(x) for x in fr]
@@ -751,50 +898,31 @@ def build_arrays(
     return arrays, ids, manifest
 
 
-def bars_from_dataset(
-    dataset, frames_per_bar: int = 48, lead: int = 5, progress: Progress | None = None
-) -> BarSet:
-    """Resample every bar of an imported ``Dataset`` beat-aligned into a ``BarSet``."""
+def bars_from_dataset(dataset, progress: Progress | None = None) -> BarSet:
+    """Every bar of an imported ``Dataset`` with the frames of its take around it (``BarSet``)."""
     clips = [c.id for c in dataset.clips]
-    cindex = {c: i for i, c in enumerate(clips)}
     by_clip: dict[str, list] = {}
     for b in dataset.bars:
         by_clip.setdefault(b.clip_id, []).append(b)
-    roots, rots, clip, bar, dur, sig, frames = [], [], [], [], [], [], []
+    takes = []
     for k, cid in enumerate(clips):
-        bl = by_clip.get(cid, [])
-        if not bl:
-            continue
-        motion = dataset.motion(cid)
-        for b in bl:
-            times = beat_sample_times(np.asarray(b.beat_times, dtype=float), frames_per_bar, lead)
-            r, q = resample(motion.root_positions, motion.rotations, motion.fps, times)
-            roots.append(r)
-            rots.append(q)
-            clip.append(cindex[cid])
-            bar.append(b.index)
-            dur.append(float(b.beat_times[4] - b.beat_times[0]))
-            sig.append(b.signature_raw or b.signature)
-            frames.append((b.start_frame, b.end_frame))
+        bl = sorted(by_clip.get(cid, []), key=lambda b: b.index)
+        takes.append(
+            (
+                dataset.motion(cid),
+                np.array([b.beat_times for b in bl], dtype=float).reshape(-1, 5),
+                np.array([b.index for b in bl], dtype=np.int64),
+                [b.signature_raw or b.signature for b in bl],
+                np.array([(b.start_frame, b.end_frame) for b in bl], dtype=np.int64).reshape(-1, 2),
+            )
+        )
         if progress:
             progress("bars", (k + 1) / len(clips))
     tags = {
         c.id: list(c.flags) + ([f"style:{c.style}"] if getattr(c, "style", None) else [])
         for c in dataset.clips
     }
-    return BarSet(
-        skeleton=dataset.skeleton,
-        clips=clips,
-        clip=np.array(clip),
-        bar=np.array(bar),
-        root=np.stack(roots),
-        rotations=np.stack(rots),
-        duration=np.array(dur),
-        signature=sig,
-        frames=np.array(frames),
-        lead=lead,
-        clip_tags=tags,
-    )
+    return BarSet.from_takes(dataset.skeleton, clips, takes, tags)
 
 
 def build_graph(
@@ -811,7 +939,7 @@ def build_graph(
     the node styles / signatures instead of the descriptor and the dataset's signatures.
     """
     params = params or BuildParams()
-    bars = bars_from_dataset(dataset, params.frames_per_bar, params.window + 1, progress)
+    bars = bars_from_dataset(dataset, progress)
     learned = None
     if style_model is not None or rhythm_model is not None:
         from functools import partial

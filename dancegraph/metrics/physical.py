@@ -17,27 +17,33 @@ SKATE_SPEED_M_S = 0.1
 
 
 def foot_skating(
-    positions: np.ndarray, world_rotations: np.ndarray, skeleton: Skeleton, fps: float
+    positions: np.ndarray,
+    world_rotations: np.ndarray,
+    skeleton: Skeleton,
+    fps: float,
+    frames: np.ndarray | None = None,
 ) -> dict:
     """Horizontal sliding of planted feet.
 
-    Contacts come from ``foot_contacts`` (height and speed thresholds); on each contact frame the
-    lower of the foot's two points (ankle, toe) carries the contact. Returns ``contact_share``
-    (contact frames / frames, both feet), ``mean_speed_m_s`` (mean horizontal speed of the
-    planted point over contact frames) and ``skating_share`` (share of contact frames faster
-    than ``SKATE_SPEED_M_S``).
+    Contacts come from ``foot_contacts`` (height and speed thresholds, on the whole dance); on
+    each contact frame the lower of the foot's two points (ankle, toe) carries the contact.
+    ``frames``: ``(F,)`` bool, count only steps between two of these frames (e.g. near seams).
+    Returns ``contact_share`` (contact frames / frames, both feet), ``mean_speed_m_s`` (mean
+    horizontal speed of the planted point over the counted contact steps), ``skating_share``
+    (share of them faster than ``SKATE_SPEED_M_S``) and ``steps`` (how many were counted).
     """
     contacts = foot_contacts(positions, fps, skeleton, world_rotations)  # (F, 2)
     pts = foot_points(positions, skeleton, world_rotations)  # (F, 2, 2, 3)
     n = pts.shape[0]
     if n < 2:
-        return {"contact_share": 0.0, "mean_speed_m_s": 0.0, "skating_share": 0.0}
+        return {"contact_share": 0.0, "mean_speed_m_s": 0.0, "skating_share": 0.0, "steps": 0}
+    counted = np.ones(n, dtype=bool) if frames is None else np.asarray(frames, dtype=bool)
     lower = np.argmin(pts[..., 1], axis=2)  # (F, 2): 0 ankle, 1 toe
     speeds = []
     for side in range(2):
         p = pts[np.arange(n), side, lower[:, side]]  # (F, 3)
         step = np.linalg.norm(np.diff(p[:, [0, 2]], axis=0), axis=-1) * fps
-        both = contacts[1:, side] & contacts[:-1, side]
+        both = contacts[1:, side] & contacts[:-1, side] & counted[1:] & counted[:-1]
         # the anchor point may switch between frames: measure each point against itself
         same = lower[1:, side] == lower[:-1, side]
         speeds.append(step[both & same])
@@ -46,6 +52,7 @@ def foot_skating(
         "contact_share": float(contacts.mean()),
         "mean_speed_m_s": float(s.mean()) if s.size else 0.0,
         "skating_share": float((s > SKATE_SPEED_M_S).mean()) if s.size else 0.0,
+        "steps": int(s.size),
     }
 
 

@@ -15,10 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dancegraph.motion.stitch import frame_jumps
-
 #: Seams above this percentile of the library's frame-to-frame distribution are flagged.
 FLAG_PERCENTILE = 99.0
+
+
+def frame_jumps(positions: np.ndarray) -> np.ndarray:
+    """``(F-1, J)`` per-joint position change between consecutive frames (m)."""
+    return np.linalg.norm(np.diff(positions, axis=0), axis=-1)
 
 
 def frame_signals(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -35,28 +38,44 @@ def frame_signals(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.nda
 
 @dataclass
 class Reference:
-    """The library's sorted per-frame joint speeds and accelerations (``frame_signals``)."""
+    """The library's sorted per-frame joint speeds and accelerations (``frame_signals``), and
+    the chance row of the seam scores: every frame of the library scored as if it were a seam
+    (``median_percentile``, ``flagged_share``; by definition about 1-2 % lie above p99)."""
 
     speed: np.ndarray
     acc: np.ndarray
     fps: float
+    chance: dict | None = None
 
     @classmethod
     def from_takes(cls, positions: list[np.ndarray], fps: float) -> Reference:
         """Pool ``frame_signals`` of every take ``(F, J, 3)`` at ``fps``."""
         parts = [frame_signals(p, fps) for p in positions]
-        return cls(
+        ref = cls(
             speed=np.sort(np.concatenate([s for s, _ in parts])),
             acc=np.sort(np.concatenate([a for _, a in parts])),
             fps=float(fps),
         )
+        scores = np.concatenate([ref._scores(s, a, np.arange(2, s.size + 1)) for s, a in parts])
+        ref.chance = {
+            "frames": int(scores.size),
+            "median_percentile": float(np.median(scores)) if scores.size else None,
+            "flagged_share": float((scores > FLAG_PERCENTILE).mean()) if scores.size else None,
+        }
+        return ref
 
-    def percentile(self, value: float, kind: str) -> float:
-        """Percentile (0–100) of ``value`` in the library's ``kind`` ("speed" or "acc") values."""
+    def percentile(self, value, kind: str):
+        """Percentile (0–100) of ``value`` (scalar or array) in the library's ``kind`` ("speed"
+        or "acc") values."""
         ref = self.speed if kind == "speed" else self.acc
         if ref.size == 0:
-            return 0.0
-        return float(100.0 * np.searchsorted(ref, value, side="left") / ref.size)
+            return np.zeros(np.shape(value))
+        return 100.0 * np.searchsorted(ref, value, side="left") / ref.size
+
+    def _scores(self, speed: np.ndarray, acc: np.ndarray, seams: np.ndarray) -> np.ndarray:
+        """Seam score (the larger percentile of ``seam_report``) at frames ``seams``."""
+        a = np.maximum(acc[np.maximum(seams - 2, 0)], acc[np.minimum(seams - 1, acc.size - 1)])
+        return np.maximum(self.percentile(speed[seams - 1], "speed"), self.percentile(a, "acc"))
 
 
 def seam_report(positions: np.ndarray, fps: float, seams, reference: Reference) -> dict:
@@ -78,7 +97,7 @@ def seam_report(positions: np.ndarray, fps: float, seams, reference: Reference) 
         v = float(speed[s - 1])
         window = acc[max(0, s - 2) : min(acc.size, s)]
         a = float(window.max()) if window.size else 0.0
-        ps, pa = reference.percentile(v, "speed"), reference.percentile(a, "acc")
+        ps, pa = float(reference.percentile(v, "speed")), float(reference.percentile(a, "acc"))
         rows.append(
             {
                 "frame": s,

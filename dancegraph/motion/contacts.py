@@ -9,7 +9,6 @@ from dancegraph.motion import quat
 from dancegraph.motion.fk import (
     canonical_positions,
     fk_arrays,
-    forward_kinematics,
     require_canonical,
 )
 from dancegraph.motion.skeleton import Motion, Skeleton
@@ -79,6 +78,13 @@ def foot_contacts(
     return contacts
 
 
+def _leg_joints(skeleton: Skeleton) -> np.ndarray:
+    """The joints of the feet (``foot_points``) and every joint above them."""
+    keys = [k for pair in _FOOT_KEYS for k in pair]
+    require_canonical(skeleton, keys)
+    return np.array([skeleton.index(skeleton.canonical[k]) for k in keys])
+
+
 def _segments(mask: np.ndarray) -> list[tuple[int, int]]:
     """``[start, stop)`` runs of True in a 1-D bool array."""
     padded = np.concatenate([[False], mask, [False]])
@@ -140,6 +146,38 @@ def two_bone_ik(
     return quat.multiply(r_hip, hip_world), quat.multiply(r_knee, knee_world)
 
 
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _fade_between_runs(corr: np.ndarray, runs: list[tuple[int, int]], blend: int) -> None:
+    """Fill ``corr (F, 3)`` outside the contact ``runs`` in place, continuously: a gap shorter
+    than two blends glides from one run's correction to the next; a longer one fades each run's
+    correction out (in) over ``blend`` frames after (before) it; before the first and after the
+    last run the correction fades likewise."""
+    n = len(corr)
+    edges: list[tuple[int | None, int | None]] = [(None, runs[0][0])] if runs else []
+    edges += [(a[1] - 1, b[0]) for a, b in zip(runs[:-1], runs[1:], strict=True)]
+    edges += [(runs[-1][1] - 1, None)] if runs else []
+    for last, first in edges:  # last frame of the run before, first frame of the run after
+        lo = 0 if last is None else last + 1
+        hi = n if first is None else first
+        if hi <= lo:
+            continue
+        f = np.arange(lo, hi)
+        if last is not None and first is not None and hi - lo <= 2 * blend:
+            u = _smoothstep((f - last) / (first - last))[:, None]
+            corr[lo:hi] = (1.0 - u) * corr[last] + u * corr[first]
+            continue
+        if last is not None:
+            w = _smoothstep(1.0 - (f - last) / (blend + 1))[:, None]
+            corr[lo:hi] += w * corr[last]
+        if first is not None:
+            w = _smoothstep(1.0 - (first - f) / (blend + 1))[:, None]
+            corr[lo:hi] += w * corr[first]
+
+
 def _sliding(points: np.ndarray, mask: np.ndarray, fps: float) -> tuple[float, float]:
     """Mean horizontal speed (m/s) and total distance (m) of ``points (F, 3)`` over ``mask``."""
     step = np.linalg.norm(np.diff(points[:, [0, 2]], axis=0), axis=-1)
@@ -168,7 +206,8 @@ def clean_foot_skate(
     """
     sk = motion.skeleton
     fps = motion.fps
-    pos, world = forward_kinematics(motion)
+    legs = _leg_joints(sk)  # forward kinematics of the legs is all this needs
+    pos, world = fk_arrays(sk, motion.root_positions, motion.rotations, legs)
     if contacts is None:
         contacts = foot_contacts(pos, fps, sk, world)
     contacts = np.asarray(contacts, dtype=bool)
@@ -186,33 +225,19 @@ def clean_foot_skate(
         ankle_j = sk.index(sk.canonical[f"{prefix}_ankle"])
         if sk.parents[knee_j] != hip_j or sk.parents[ankle_j] != knee_j:
             continue  # not a plain two-bone leg: leave it
-        offset = np.zeros((n_frames, 3))
-        weight = np.zeros(n_frames)
-        for start, stop in _segments(contacts[:, side]):
+        runs = _segments(contacts[:, side])
+        corr = np.zeros((n_frames, 3))
+        for start, stop in runs:
             anchor = int(pts[start:stop, side, 1, 1].mean() < pts[start:stop, side, 0, 1].mean())
             anchors[start:stop, side] = anchor
             p = pts[start:stop, side, anchor]
-            locked = p.mean(axis=0)
-            offset[start:stop, [0, 2]] = locked[[0, 2]] - p[:, [0, 2]]
-            weight[start:stop] = 1.0
-            # fade the run's edge corrections in and out over the neighbouring frames
-            for edge, frames in (
-                (start, range(start - blend, start)),
-                (stop - 1, range(stop, stop + blend)),
-            ):
-                for f in frames:
-                    if 0 <= f < n_frames and not contacts[f, side]:
-                        w = 1.0 - abs(f - edge) / (blend + 1)
-                        w = w * w * (3.0 - 2.0 * w)
-                        if w > weight[f]:
-                            weight[f] = w
-                            offset[f] = offset[edge]
-        active = weight > 0
+            corr[start:stop, [0, 2]] = p.mean(axis=0)[[0, 2]] - p[:, [0, 2]]
+        _fade_between_runs(corr, runs, blend)
+        active = np.linalg.norm(corr, axis=-1) > 0
         if not active.any():
             continue
-        corr = offset[active] * weight[active, None]
-        max_corr = max(max_corr, float(np.linalg.norm(corr, axis=-1).max()))
-        target = pts[active, side, 0] + corr
+        max_corr = max(max_corr, float(np.linalg.norm(corr[active], axis=-1).max()))
+        target = pts[active, side, 0] + corr[active]
         new_hip_w, new_knee_w = two_bone_ik(
             pos[active, hip_j],
             pos[active, knee_j],
@@ -228,7 +253,7 @@ def clean_foot_skate(
             quat.conjugate(new_knee_w), world[active, ankle_j]
         )
     cleaned = Motion(sk, fps, motion.root_positions.copy(), rotations)
-    pos2, world2 = fk_arrays(sk, cleaned.root_positions, rotations)
+    pos2, world2 = fk_arrays(sk, cleaned.root_positions, rotations, legs)
     pts2 = foot_points(pos2, sk, world2)
     before_speed, before_dist, after_speed, after_dist = [], [], [], []
     for side in range(2):

@@ -18,13 +18,21 @@ def forward_kinematics(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fk_arrays(
-    skeleton: Skeleton, root_positions: np.ndarray, rotations: np.ndarray
+    skeleton: Skeleton,
+    root_positions: np.ndarray,
+    rotations: np.ndarray,
+    joints: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``forward_kinematics`` on bare arrays: ``root_positions (F, 3)``, ``rotations (F, J, 4)``."""
+    """``forward_kinematics`` on bare arrays: ``root_positions (F, 3)``, ``rotations (F, J, 4)``.
+
+    ``joints``: compute only these joints and their ancestors (the other rows of both outputs
+    are left zero), for callers that need a few joints of many frames.
+    """
     n_frames, n_joints = rotations.shape[:2]
-    positions = np.empty((n_frames, n_joints, 3))
-    world = np.empty((n_frames, n_joints, 4))
-    for j in range(n_joints):
+    positions = np.zeros((n_frames, n_joints, 3))
+    world = np.zeros((n_frames, n_joints, 4))
+    todo = range(n_joints) if joints is None else with_ancestors(skeleton, joints)
+    for j in todo:
         p = skeleton.parents[j]
         if p < 0:
             world[:, j] = rotations[:, j]
@@ -33,6 +41,16 @@ def fk_arrays(
             world[:, j] = quat.multiply(world[:, p], rotations[:, j])
             positions[:, j] = positions[:, p] + quat.rotate(world[:, p], skeleton.offsets[j])
     return positions, world
+
+
+def with_ancestors(skeleton: Skeleton, joints: np.ndarray) -> list[int]:
+    """``joints`` and every ancestor of them, in skeleton order (parents first)."""
+    need = set()
+    for j in np.asarray(joints, dtype=np.int64).reshape(-1).tolist():
+        while j >= 0 and j not in need:
+            need.add(j)
+            j = int(skeleton.parents[j])
+    return sorted(need)
 
 
 def end_site_positions(

@@ -1,4 +1,12 @@
-"""Time warping: a clip onto a new frame count and frame rate (linear root, slerp rotations)."""
+"""Time warping: clips onto new frame counts and rates, and the beat-anchored warp of the renderer.
+
+``Warp`` is the one time-warp of the project: a monotone, smooth (C1) map through anchor pairs,
+the monotone cubic of Fritsch and Carlson (PCHIP) between the anchors and straight lines
+with the end slopes beyond them. A rendered bar maps song time to the source frames of its node
+through two of them (``song_phase`` and ``node_warp``), so every beat of the node lands on the
+song's beat of the same number, the dance speeds up and slows down with uneven beats, and the
+warp stays defined past the bar's ends, where the seam's cut may fall (docs/rendering.md).
+"""
 
 from __future__ import annotations
 
@@ -6,6 +14,103 @@ import numpy as np
 
 from dancegraph.motion import quat
 from dancegraph.motion.skeleton import Motion
+
+#: A node stores where its bar's beats -2 .. 6 fall in its frames: the bar's 4 beats and closing
+#: downbeat (0 .. 4) and two beats either side, so the warp's slopes on the beat either side of
+#: the bar (where a cut may fall) are those of the take's own beats; phase p of the bar is beat p.
+NODE_BEATS = np.arange(-2, 7)
+#: Column of the downbeat (beat 0) in a node's beats: beat j is column ``BEAT0 + j``.
+BEAT0 = 2
+
+
+class Warp:
+    """A monotone, C1 map through anchors ``x (K,)`` → ``y (K,)`` (both increasing, K >= 2).
+
+    Between the anchors: the monotone piecewise cubic Hermite interpolant of Fritsch and Carlson
+    (the slopes of scipy's ``PchipInterpolator``), which neither overshoots nor reverses where
+    the anchors are uneven; outside them: straight lines continuing the end slopes, so the map
+    is defined, monotone and C1 everywhere. Anchors that are not strictly increasing are nudged
+    apart by 1e-9 of their span.
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray) -> None:
+        x = _strictly_increasing(np.asarray(x, dtype=float).reshape(-1))
+        y = _strictly_increasing(np.asarray(y, dtype=float).reshape(-1))
+        if x.size < 2 or x.size != y.size:
+            raise ValueError(f"a warp needs at least 2 anchor pairs, got {x.size} and {y.size}")
+        self.x, self.y = x, y
+        self.slopes = _pchip_slopes(x, y)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        x, y, d = self.x, self.y, self.slopes
+        i = np.clip(np.searchsorted(x, t, side="right") - 1, 0, x.size - 2)
+        h = x[i + 1] - x[i]
+        s = (t - x[i]) / h
+        s2, s3 = s * s, s * s * s
+        inner = (
+            (2 * s3 - 3 * s2 + 1) * y[i]
+            + (s3 - 2 * s2 + s) * h * d[i]
+            + (-2 * s3 + 3 * s2) * y[i + 1]
+            + (s3 - s2) * h * d[i + 1]
+        )
+        below = y[0] + d[0] * (t - x[0])
+        above = y[-1] + d[-1] * (t - x[-1])
+        return np.where(t < x[0], below, np.where(t > x[-1], above, inner))
+
+
+def _pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Fritsch-Carlson slopes at the anchors (weighted harmonic mean of the neighbouring secants,
+    zero where they change sign; shape-preserving three-point slopes at the ends)."""
+    h = np.diff(x)
+    m = np.diff(y) / h
+    if x.size == 2:
+        return np.array([m[0], m[0]])
+    d = np.zeros_like(x)
+    w1 = 2 * h[1:] + h[:-1]
+    w2 = h[1:] + 2 * h[:-1]
+    same = m[:-1] * m[1:] > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        harmonic = (w1 + w2) / (w1 / m[:-1] + w2 / m[1:])
+    d[1:-1] = np.where(same, harmonic, 0.0)
+    for end, (h0, h1, m0, m1) in (
+        (0, (h[0], h[1], m[0], m[1])),
+        (-1, (h[-1], h[-2], m[-1], m[-2])),
+    ):
+        e = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+        if np.sign(e) != np.sign(m0):
+            e = 0.0
+        elif np.sign(m0) != np.sign(m1) and abs(e) > 3 * abs(m0):
+            e = 3 * m0
+        d[end] = e
+    return d
+
+
+def _strictly_increasing(v: np.ndarray) -> np.ndarray:
+    if v.size < 2 or np.all(np.diff(v) > 0):
+        return v
+    eps = 1e-9 * max(float(v.max() - v.min()), 1.0)
+    return np.maximum.accumulate(v) + eps * np.arange(v.size)
+
+
+def song_phase(bar_beats: np.ndarray) -> Warp:
+    """Song time (s) → beat phase: beat j of bar b (``bar_beats (B, 5)`` s) at phase ``4b + j``.
+
+    The anchors are every bar's beats 0-3 and the last bar's closing downbeat, so a gap between
+    two bars (a downbeat correction) is danced by the earlier bar, as ``render.bar_frames`` gives
+    its frames to it.
+    """
+    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    if len(bb) == 0:
+        raise ValueError("song_phase needs at least one bar")
+    times = np.concatenate([bb[:, :4].reshape(-1), bb[-1:, 4]])
+    return Warp(times, np.arange(times.size, dtype=float))
+
+
+def node_warp(beats: np.ndarray) -> Warp:
+    """Bar phase (beats, 0 = downbeat) → frame of a node's stored motion; ``beats (9,)``: the
+    frames (fractional) of its beats -2 .. 6 (``NODE_BEATS``)."""
+    return Warp(NODE_BEATS.astype(float), np.asarray(beats, dtype=float))
 
 
 def sample(motion: Motion, frames: np.ndarray) -> Motion:
@@ -28,11 +133,10 @@ def sample(motion: Motion, frames: np.ndarray) -> Motion:
 def retime(motion: Motion, n_frames: int, fps: float, *, endpoint: bool = False) -> Motion:
     """Warp a clip uniformly onto ``n_frames`` frames at ``fps``.
 
-    Default (half-open, for bars laid end to end): the clip's span ``[0, F)`` frames maps onto
-    ``[0, n_frames)``, so output frame k shows source frame ``k · F / n_frames`` and the next
-    clip's first frame takes the place of the (absent) frame ``n_frames``. With ``endpoint``
-    the first and last frames map onto each other (``k · (F-1) / (n_frames-1)``), for a clip
-    that includes its closing downbeat. Rotations are slerped, the root interpolated linearly.
+    Default (half-open): the clip's span ``[0, F)`` frames maps onto ``[0, n_frames)``, so
+    output frame k shows source frame ``k · F / n_frames``. With ``endpoint`` the first and last
+    frames map onto each other (``k · (F-1) / (n_frames-1)``). Rotations are slerped, the root
+    interpolated linearly.
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be at least 1, got {n_frames}")

@@ -1,81 +1,126 @@
-"""Stitching bar clips into one motion: root alignment and blended seams.
+"""Seams: where one bar's node hands over to the next, the distance that judges a hand-over, and
+the inertialized blend that hides it (docs/rendering.md).
 
-Each clip after the first is turned about the vertical axis and moved on the ground plane so
-that it continues where the motion so far is heading: its first frame's heading equals the
-previous frame's heading extrapolated by one frame of turning, and its root's ground position
-equals the previous root position plus one frame of velocity. Height is the clip's own.
+A dance is its bars' nodes laid on the song through one time-warp (``retime.song_phase`` and
+``retime.node_warp``): every output frame of bar b shows bar b's node at the source frame whose
+beat phase is the song's phase there, and a node's stored frames reach about a beat past both
+ends of its bar. So the hand-over from bar b-1's node p to bar b's node q need not sit on the bar
+line. ``stitch`` cuts at the frame within ``cut_beats`` of the bar line where p and q, each at
+the phase the song has reached there, match best by ``seam_distance`` (pose and velocity of the
+main joints, each in its own heading frame): before the cut p dances on past its bar, after it q
+starts early or late, and the beats stay where the warp puts them. The graph build links nodes
+by the same distance (its minimum over the same window, on a coarser grid), so an edge that
+exists is a hand-over the renderer can make smoothly. Where q is the next bar of p's take (the
+two show the same motion at the bar line) the take simply continues: no cut, no blend, no seam.
 
-The remaining pose difference at the seam (the next clip's first frame against the motion so
-far extrapolated one frame) is blended away with quintic fades whose value, velocity and
-acceleration vanish at their far end, so the frame step across the seam is the previous
-motion's own velocity and nothing pops:
-
-- ``split`` (default): half the offset is faded into the end of the motion so far, half out
-  of the start of the next clip, like a crossfade centred on the seam but without ghosting;
-- ``inertialize``: all of it is faded out of the next clip (Bollo, GDC 2016), leaving what was
-  already stitched untouched.
-
-A large offset fades over more frames, so the correction itself moves no body point faster
-than about ``max_speed``. Measured on real salsa bars chained by pose similarity (as a motion
-graph links them; 10 chains of 30 bars, at 30 and 60 fps): the p99 per-frame joint jump within
-0.3 s either side of the seams is 1.04 × (median; worst 1.11 ×) the source clips' own p99 with
-``split``, 1.08 × (worst 1.14 ×) with ``inertialize``. Bars picked at random, which a graph
-would not link, reach 1.1-1.5 ×.
+At the cut (``hand_over``) q is turned about +Y and moved on the ground so that its root's
+heading and ground position equal p's at the cut frame, then the remaining offsets between p and
+q at the cut, of every joint rotation and the root position and of their velocities, are added to
+q and decayed to zero over the frames after the cut (inertialization, Bollo, GDC 2016 and 2018):
+the cut frame shows p's own pose moving at p's own velocity, and q takes over without a pop. Each
+offset decays along Bollo's quintic (zero value, velocity and acceleration at its end) over a
+length chosen so that the offset's own acceleration stays below ``MAX_OFFSET_ACC`` at the joint
+and the limb below it, never past the next cut.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from dancegraph.motion import quat
-from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.motion.fk import canonical_positions, fk_arrays, with_ancestors
+from dancegraph.motion.retime import node_warp, sample, song_phase
+from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 
-#: Default seam blend length in seconds (frames = round(this × fps)).
-BLEND_S = 0.3
+#: Half-width (beats) of the window around a bar line where the cut may fall.
+CUT_BEATS = 1.0
+#: Largest acceleration (m/s²) an offset's decay may add to a body point.
+MAX_OFFSET_ACC = 6.0
+#: Seam distances closer than this count as equal: the cut nearer the bar line wins.
+TIE = 0.01
+#: Two nodes whose seam distance at the bar line is below this show the same motion there (the
+#: next bar of the same take, up to interpolation: about 2.5 mm or mm/s per main joint): the take
+#: continues and there is no seam.
+SAME = 0.05
+#: Least and most decay length of an offset, seconds.
+BLEND_MIN_S = 0.1
+BLEND_MAX_S = 1.0
 
 
-def _decay(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray | int, n: int) -> np.ndarray:
-    """``(n, ...)`` quintic decay of offsets ``x0`` with initial velocities ``v0`` (per frame) to
-    zero value, velocity and acceleration at frame ``lengths`` (broadcast to ``x0``; zero after)."""
-    T = np.broadcast_to(np.asarray(lengths, dtype=float), x0.shape)
-    t = np.arange(n, dtype=float).reshape((-1,) + (1,) * x0.ndim)
-    a0 = (-8.0 * v0 * T - 20.0 * x0) / T**2
-    A = -(a0 * T**2 + 6.0 * v0 * T + 12.0 * x0) / (2.0 * T**5)
-    B = (3.0 * a0 * T**2 + 16.0 * v0 * T + 30.0 * x0) / (2.0 * T**4)
-    C = -(3.0 * a0 * T**2 + 12.0 * v0 * T + 20.0 * x0) / (2.0 * T**3)
-    x = (((A * t + B) * t + C) * t + 0.5 * a0) * t * t + v0 * t + x0
-    return np.where(t < T, x, 0.0)
+# --------------------------------------------------------------------------------------------
+# the distance
 
 
-def _lengths(x0: np.ndarray, v0: np.ndarray, rate: float, least: int, most: int) -> np.ndarray:
-    """Blend length (frames) per offset: long enough that the decay moves no faster than
-    ``rate`` per frame (a quintic's peak speed is about 1.9 × offset / length)."""
-    size = np.linalg.norm(x0, axis=-1, keepdims=True) + 0.5 * np.linalg.norm(
-        v0, axis=-1, keepdims=True
+def main_joint_keys(skeleton: Skeleton) -> list[str]:
+    """The canonical joints the skeleton maps, in ``CANONICAL_JOINTS`` order: the joints the seam
+    distance (and the graph's transition features) compare."""
+    return [k for k in CANONICAL_JOINTS if k in skeleton.canonical]
+
+
+def seam_features(
+    skeleton: Skeleton, root: np.ndarray, rotations: np.ndarray, dt: float | np.ndarray
+) -> tuple[np.ndarray, list[int]]:
+    """Pose and velocity features of the inner frames of runs of frames.
+
+    ``root (S, W, 3)`` metres and ``rotations (S, W, J, 4)`` local rotations: S runs of W >= 3
+    frames, ``dt`` seconds apart (scalar or ``(S,)``). For each of the W-2 inner frames, in the
+    heading frame of its root (ground position and heading factored out): the main joints'
+    positions (m), their local rotations (the root's without its heading; chordal, 2‖Δq‖ ≈ the
+    angle in radians) and their velocities (m/s, central difference of the frames either
+    side). Each block is scaled by √K (K main joints), so a block's Euclidean distance equals
+    the sum over the joints of the per-joint distances when these are even. Returns
+    ``(S, W-2, 10K) float32`` and the block sizes ``[3K, 4K, 3K]`` for ``seam_distance``.
+    """
+    keys = main_joint_keys(skeleton)
+    joints = np.array([skeleton.index(skeleton.canonical[k]) for k in keys])
+    s, w = root.shape[:2]
+    if w < 3:
+        raise ValueError(f"seam_features needs runs of at least 3 frames, got {w}")
+    n_j = rotations.shape[-2]
+    root = np.asarray(root, dtype=np.float64)
+    rot = np.asarray(rotations, dtype=np.float64)
+    pos, world = fk_arrays(skeleton, root.reshape(-1, 3), rot.reshape(-1, n_j, 4), joints)
+    main = canonical_positions(skeleton, pos, world, keys).reshape(s, w, len(keys), 3)
+    yaw = quat.heading_angle(world[:, 0]).reshape(s, w)[:, 1:-1]
+    cos, sin = np.cos(yaw)[:, :, None], np.sin(yaw)[:, :, None]  # (S, W-2, 1)
+    ox, oz = root[:, 1:-1, None, 0], root[:, 1:-1, None, 2]
+
+    def turned(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:  # by -yaw about +Y
+        return np.stack([x * cos - z * sin, y, x * sin + z * cos], axis=-1)
+
+    dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), (s,))
+    inner = main[:, 1:-1]
+    here = turned(inner[..., 0] - ox, inner[..., 1], inner[..., 2] - oz)
+    step = (main[:, 2:] - main[:, :-2]) / (2.0 * dt)[:, None, None, None]
+    vel = turned(step[..., 0], step[..., 1], step[..., 2])
+    r = rot[:, 1:-1][:, :, joints]  # (S, W-2, K, 4)
+    roots = skeleton.parents[joints] < 0
+    turn = quat.from_y_angle(-yaw)[:, :, None]  # (S, W-2, 1, 4)
+    r[:, :, roots] = quat.multiply(np.broadcast_to(turn, r[:, :, roots].shape), r[:, :, roots])
+    r = np.where(r[..., 3:4] < 0.0, -r, r) * 2.0
+    k = len(keys)
+    feats = np.concatenate(
+        [here.reshape(s, w - 2, -1), r.reshape(s, w - 2, -1), vel.reshape(s, w - 2, -1)], axis=2
     )
-    need = np.ceil(1.9 * size / rate)
-    return np.clip(need, least, max(least, most))
+    return (feats * np.sqrt(k)).astype(np.float32), [3 * k, 4 * k, 3 * k]
 
 
-def align_root(prev: Motion, clip: Motion) -> Motion:
-    """``clip`` turned about +Y and moved on the ground so it continues ``prev``'s last frame."""
-    p1 = prev.root_positions[-1]
-    p2 = prev.root_positions[-2] if prev.n_frames > 1 else p1
-    h1 = quat.heading_angle(prev.rotations[-1, 0])
-    h2 = quat.heading_angle(prev.rotations[-2, 0]) if prev.n_frames > 1 else h1
-    turn_rate = np.angle(np.exp(1j * (h1 - h2)))  # wrapped to (-π, π]
-    target_heading = h1 + turn_rate
-    delta = target_heading - quat.heading_angle(clip.rotations[0, 0])
-    turn = quat.from_y_angle(delta)
-    target_pos = p1 + (p1 - p2)
-    start = clip.root_positions[0]
-    rel = clip.root_positions - start * [1.0, 0.0, 1.0]
-    root = quat.rotate(np.broadcast_to(turn, rel.shape[:-1] + (4,)), rel)
-    root[:, 0] += target_pos[0]
-    root[:, 2] += target_pos[2]
-    rotations = clip.rotations.copy()
-    rotations[:, 0] = quat.multiply(np.broadcast_to(turn, rotations[:, 0].shape), rotations[:, 0])
-    return Motion(clip.skeleton, clip.fps, root, rotations)
+def seam_distance(a: np.ndarray, b: np.ndarray, blocks: Sequence[int]) -> np.ndarray:
+    """Σ over the feature blocks of ‖a_blk − b_blk‖ for paired rows ``a, b (..., D)`` → ``(...)``:
+    the pose term T_d of a hand-over (ChoreoMaster's λ8 term, DESIGN.md §4)."""
+    out = np.zeros(np.broadcast_shapes(a.shape[:-1], b.shape[:-1]))
+    start = 0
+    for size in blocks:
+        d = np.asarray(a[..., start : start + size], np.float64) - b[..., start : start + size]
+        out += np.sqrt(np.einsum("...i,...i->...", d, d))
+        start += size
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the blend
 
 
 def limb_reach(skeleton: Skeleton) -> np.ndarray:
@@ -89,166 +134,254 @@ def limb_reach(skeleton: Skeleton) -> np.ndarray:
     return reach
 
 
-def inertialize(
-    prev: Motion,
-    clip: Motion,
-    blend_frames: int,
+def _decay(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray, n: int) -> np.ndarray:
+    """``(n, ...)`` Bollo's quintic from offsets ``x0`` with velocities ``v0`` (per frame) to zero
+    value, velocity and acceleration at frame ``lengths`` (broadcast to ``x0``; zero after)."""
+    T = np.broadcast_to(np.asarray(lengths, dtype=float), x0.shape)
+    t = np.arange(n, dtype=float).reshape((-1,) + (1,) * x0.ndim)
+    a0 = (-8.0 * v0 * T - 20.0 * x0) / T**2
+    A = -(a0 * T**2 + 6.0 * v0 * T + 12.0 * x0) / (2.0 * T**5)
+    B = (3.0 * a0 * T**2 + 16.0 * v0 * T + 30.0 * x0) / (2.0 * T**4)
+    C = -(3.0 * a0 * T**2 + 12.0 * v0 * T + 20.0 * x0) / (2.0 * T**3)
+    x = (((A * t + B) * t + C) * t + 0.5 * a0) * t * t + v0 * t + x0
+    return np.where(t < T, x, 0.0)
+
+
+def _lengths(size: np.ndarray, speed: np.ndarray, fps: float, least: int, most: int) -> np.ndarray:
+    """Decay length (frames) of offsets that move a body point ``size`` metres at ``speed`` m/s:
+    the shortest T whose initial acceleration |8·v/T + 20·x/T²| stays below ``MAX_OFFSET_ACC``."""
+    a = MAX_OFFSET_ACC
+    t = (8.0 * speed + np.sqrt(64.0 * speed**2 + 80.0 * a * size)) / (2.0 * a)
+    return np.clip(np.ceil(t * fps), least, max(least, most))
+
+
+def _turned(motion: Motion, turn: float, pivot: np.ndarray, target: np.ndarray) -> Motion:
+    """``motion`` turned by ``turn`` radians about +Y around ground point ``pivot`` and moved so
+    that the pivot lands on ground point ``target`` (heights kept)."""
+    q = quat.from_y_angle(np.float64(turn))
+    rel = motion.root_positions - pivot * [1.0, 0.0, 1.0]
+    root = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel) + target * [1.0, 0.0, 1.0]
+    rot = motion.rotations.copy()
+    rot[:, 0] = quat.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    return Motion(motion.skeleton, motion.fps, root, rot)
+
+
+def hand_over(
+    before: Motion,
+    after: Motion,
+    segment: Motion,
     *,
-    max_speed: float = 0.7,
-    carry_velocity: bool = False,
-) -> Motion:
-    """``clip`` with the seam offset to ``prev`` decayed over its first frames.
+    blend: bool = True,
+    most: int | None = None,
+    reach: np.ndarray | None = None,
+) -> tuple[Motion, tuple[float, np.ndarray, np.ndarray], int]:
+    """q's ``segment`` (its frames from the cut on) continuing p's motion at the cut.
 
-    The offset is taken against ``prev`` extrapolated one frame, so the seam frame moves on at
-    ``prev``'s velocity. ``carry_velocity`` also decays the velocity difference (Bollo's full
-    form: velocity-continuous, but on real salsa transitions it raised the p99 per-frame joint
-    jump after seams from 1.11 to 1.22 × the data's own, so it is off by default).
-
-    Each joint's offset decays over at least ``blend_frames`` frames, longer where the offset
-    is large, so that the decay itself moves no body point faster than about ``max_speed``
-    (m/s): a joint's angular rate is held to ``max_speed`` over the reach of the limb below it.
-    Never past the clip's end.
+    ``before`` and ``after``: 3 frames each, p's and q's at the frames before, at and after the
+    cut (the cut frame is ``segment``'s first). The segment is turned and moved on the ground so
+    q's root heading and ground position at the cut equal p's; with ``blend`` the offsets of the
+    root position and every joint rotation and of their velocities are decayed over the frames
+    after the cut (at most ``most``, default the segment's length); ``reach``: the skeleton's
+    ``limb_reach`` when the caller has it. Returns the segment, the
+    ground transform applied (turn, pivot, target: see ``_turned``) and the longest decay in
+    frames.
     """
-    if blend_frames < 1 or prev.n_frames < 1:
-        return clip
-    fps = clip.fps
-    most = clip.n_frames - 1 if clip.n_frames > 1 else 1
-    p1 = prev.root_positions[-1]
-    p2 = prev.root_positions[-2] if prev.n_frames > 1 else p1
-    q1 = prev.rotations[-1]
-    q2 = prev.rotations[-2] if prev.n_frames > 1 else q1
-    c0, c1 = clip.root_positions[0], clip.root_positions[min(1, clip.n_frames - 1)]
-    r0, r1 = clip.rotations[0], clip.rotations[min(1, clip.n_frames - 1)]
-    # root position
-    v_src = p1 - p2
-    x0 = (p1 + v_src) - c0
-    v0 = v_src - (c1 - c0)
-    if not carry_velocity:
-        v0 = np.zeros_like(v0)
-    n_pos = _lengths(x0, v0, max_speed / fps, blend_frames, most)
-    # rotations: offsets as rotation vectors, left-multiplied onto the clip's rotations
-    step_src = quat.multiply(q1, quat.conjugate(q2))
-    step_src = quat.same_hemisphere(step_src, quat.identity(step_src.shape[:-1]))
-    extrapolated = quat.multiply(step_src, q1)
-    x0r = quat.to_rotvec(quat.multiply(extrapolated, quat.conjugate(r0)))
-    v0r = quat.to_rotvec(step_src) - quat.to_rotvec(quat.multiply(r1, quat.conjugate(r0)))
-    if not carry_velocity:
-        v0r = np.zeros_like(v0r)
-    rate = max_speed / fps / np.maximum(limb_reach(clip.skeleton), 0.1)[:, None]
-    n_rot = _lengths(x0r, v0r, rate, blend_frames, most)  # (J, 1)
-    n = int(min(clip.n_frames, max(n_pos.max(), n_rot.max())))
-    root = clip.root_positions.copy()
+    fps = segment.fps
+    turn = float(
+        quat.heading_angle(before.rotations[1, 0]) - quat.heading_angle(after.rotations[1, 0])
+    )
+    pivot, target = after.root_positions[1].copy(), before.root_positions[1].copy()
+    segment = _turned(segment, turn, pivot, target)
+    if not blend or segment.n_frames < 2:
+        return segment, (turn, pivot, target), 0
+    q3 = _turned(after, turn, pivot, target)
+    p_root, q_root = before.root_positions, q3.root_positions
+    x0 = p_root[1] - q_root[1]
+    v0 = 0.5 * ((p_root[2] - p_root[0]) - (q_root[2] - q_root[0]))
+    p_rot = before.rotations
+    q_rot = quat.same_hemisphere(q3.rotations, p_rot)
+    x0r = quat.to_rotvec(quat.multiply(p_rot[1], quat.conjugate(q_rot[1])))
+    v0r = 0.5 * (
+        quat.to_rotvec(quat.multiply(p_rot[2], quat.conjugate(p_rot[0])))
+        - quat.to_rotvec(quat.multiply(q_rot[2], quat.conjugate(q_rot[0])))
+    )
+    most = segment.n_frames if most is None else min(most, segment.n_frames)
+    least = max(1, int(round(BLEND_MIN_S * fps)))
+    top = max(least, min(most, int(round(BLEND_MAX_S * fps))))
+    reach = np.maximum(limb_reach(segment.skeleton) if reach is None else reach, 0.1)[:, None]
+    n_pos = _lengths(
+        np.asarray(np.linalg.norm(x0)), np.asarray(np.linalg.norm(v0) * fps), fps, least, top
+    )
+    n_rot = _lengths(
+        np.linalg.norm(x0r, axis=-1, keepdims=True) * reach,
+        np.linalg.norm(v0r, axis=-1, keepdims=True) * reach * fps,
+        fps,
+        least,
+        top,
+    )  # (J, 1)
+    n = int(min(segment.n_frames, max(float(n_pos), float(n_rot.max()))))
+    root = segment.root_positions.copy()
     root[:n] += _decay(x0, v0, n_pos, n)
-    rotations = clip.rotations.copy()
+    rot = segment.rotations.copy()
     offsets = quat.from_rotvec(_decay(x0r, v0r, n_rot, n))  # (n, J, 4)
-    rotations[:n] = quat.normalize(quat.multiply(offsets, rotations[:n]))
-    return Motion(clip.skeleton, clip.fps, root, rotations)
+    rot[:n] = quat.normalize(quat.multiply(offsets, quat.same_hemisphere(rot[:n], offsets)))
+    return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), n
 
 
-def _split_seam(
-    tail: Motion,
-    head: Motion,
-    blend_frames: int,
-    max_speed: float,
-) -> tuple[Motion, Motion]:
-    """Share the seam offset between ``tail`` (the motion before) and ``head`` (the clip after).
-
-    ``D`` is the difference between ``head``'s first frame and ``tail`` extrapolated one frame.
-    ``tail``'s last frames move by +D/2 and ``head``'s first frames by -D/2, each fading out
-    away from the seam (quintic, zero velocity and acceleration at the far end), so the frame
-    step across the seam is ``tail``'s own velocity and each side corrects half the offset.
-    """
-    fps = head.fps
-    p1 = tail.root_positions[-1]
-    p2 = tail.root_positions[-2] if tail.n_frames > 1 else p1
-    q1 = tail.rotations[-1]
-    q2 = tail.rotations[-2] if tail.n_frames > 1 else q1
-    step = quat.same_hemisphere(quat.multiply(q1, quat.conjugate(q2)), quat.identity(q1.shape[:-1]))
-    half_pos = 0.5 * (head.root_positions[0] - (2.0 * p1 - p2))
-    half_rot = 0.5 * quat.to_rotvec(
-        quat.multiply(head.rotations[0], quat.conjugate(quat.multiply(step, q1)))
-    )
-    zeros_pos, zeros_rot = np.zeros_like(half_pos), np.zeros_like(half_rot)
-    rate = max_speed / fps / np.maximum(limb_reach(head.skeleton), 0.1)[:, None]
-    most = max(1, min(tail.n_frames, head.n_frames) - 1)
-    n_pos = _lengths(half_pos, zeros_pos, max_speed / fps, blend_frames, most)
-    n_rot = _lengths(half_rot, zeros_rot, rate, blend_frames, most)
-    n = int(min(most + 1, max(n_pos.max(), n_rot.max())))
-    fade_pos = _decay(half_pos, zeros_pos, n_pos, n)  # (n, 3), frame 0 at the seam
-    fade_rot = _decay(half_rot, zeros_rot, n_rot, n)  # (n, J, 3)
-    tail_root = tail.root_positions.copy()
-    tail_rot = tail.rotations.copy()
-    tail_root[-n:] += fade_pos[::-1]
-    tail_rot[-n:] = quat.normalize(quat.multiply(quat.from_rotvec(fade_rot[::-1]), tail_rot[-n:]))
-    head_root = head.root_positions.copy()
-    head_rot = head.rotations.copy()
-    head_root[:n] -= fade_pos
-    head_rot[:n] = quat.normalize(quat.multiply(quat.from_rotvec(-fade_rot), head_rot[:n]))
-    return (
-        Motion(tail.skeleton, fps, tail_root, tail_rot),
-        Motion(head.skeleton, fps, head_root, head_rot),
-    )
+# --------------------------------------------------------------------------------------------
+# a path of bars
 
 
 def stitch(
-    clips: list[Motion],
-    blend_frames: int | None = None,
+    pieces: Sequence[tuple[Motion, np.ndarray]],
+    bar_beats: np.ndarray,
+    frames: np.ndarray,
+    fps: float,
     *,
-    align: bool = True,
-    method: str = "split",
-    max_speed: float = 0.7,
-) -> tuple[Motion, np.ndarray]:
-    """Concatenate clips (same skeleton and fps) with root alignment and blended seams.
+    cut_beats: float = CUT_BEATS,
+    blend: bool = True,
+) -> tuple[Motion, dict]:
+    """The dance of bars laid on the song: one node per music bar, cut where they match best.
 
-    ``blend_frames``: least seam blend length in frames (default ``BLEND_S`` × fps); larger
-    offsets blend longer so the correction moves no body point faster than about
-    ``max_speed`` m/s. ``method``: ``"split"`` (default) shares each seam's offset between the
-    end of the motion so far and the start of the next clip; ``"inertialize"`` puts it all on
-    the next clip (Bollo's inertialization). ``align``: carry ground position and heading
-    across seams (off: clips keep their own root paths and only the seams are blended).
-    Returns the motion and the ``(len(clips) - 1,)`` frame indices where each later clip starts.
+    ``pieces``: per bar the node's stored motion (any frame rate) and the frames (fractional) of
+    its beats -2 .. 6 in it (``retime.NODE_BEATS``); ``bar_beats (B, 5)`` the song's beat times
+    of each bar (s); ``frames (B, 2)`` each bar's output frames ``[start, end)`` at ``fps``
+    (``render.bar_frames``). Output frame k shows bar b's node at source frame
+    ``node_warp(beats_b)(song_phase(bar_beats)(k / fps) - 4b)``. Each hand-over is cut at the
+    frame within ``cut_beats`` of its bar line (and where both nodes have stored frames) with
+    the least ``seam_distance``, then joined by ``hand_over`` (``blend`` off: root alignment
+    only). Where the two nodes show the same motion at the bar line (distance below ``SAME``: bar
+    b's node is the next bar of bar b-1's take) the take simply continues: the cut stays on the
+    line, nothing is blended, and it is no seam.
+
+    Returns the motion of frames ``[frames[0, 0], frames[-1, 1])`` at ``fps`` and a report:
+    ``cuts`` (B-1,) output frame where each later bar's node takes over, ``cut_beats`` (B-1,)
+    the cut's offset from the bar line in beats, ``distance`` (B-1,) the seam distance at the
+    cut, ``continuous`` (B-1,) bool where the take continues (no seam), ``blend_frames``
+    (B-1,) the longest offset decay.
     """
-    if not clips:
-        raise ValueError("stitch needs at least one clip")
-    if method not in ("split", "inertialize"):
-        raise ValueError(f"unknown seam method {method!r}")
-    first = clips[0]
-    for c in clips[1:]:
-        if c.skeleton.names != first.skeleton.names:
-            raise ValueError("stitch: clips have different skeletons")
-        if abs(c.fps - first.fps) > 1e-6:
-            raise ValueError(f"stitch: clips at {c.fps} and {first.fps} fps; retime them first")
-    if blend_frames is None:
-        blend_frames = max(1, int(round(BLEND_S * first.fps)))
-    parts = [first]
-    seams = []
-    total = first.n_frames
-    for clip in clips[1:]:
-        prev = parts[-1]
-        nxt = align_root(prev, clip) if align else clip
-        if blend_frames >= 1:
-            if method == "split":
-                parts[-1], nxt = _split_seam(prev, nxt, blend_frames, max_speed)
-            else:
-                nxt = inertialize(prev, nxt, blend_frames, max_speed=max_speed)
-        seams.append(total)
-        parts.append(nxt)
-        total += nxt.n_frames
-    motion = Motion(
-        first.skeleton,
-        first.fps,
-        np.concatenate([p.root_positions for p in parts]),
-        np.concatenate([p.rotations for p in parts]),
+    if not pieces:
+        raise ValueError("stitch needs at least one bar")
+    bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    frames = np.asarray(frames, dtype=np.int64).reshape(-1, 2)
+    if not len(pieces) == len(bar_beats) == len(frames):
+        raise ValueError(
+            f"stitch: {len(pieces)} pieces, {len(bar_beats)} bars of beats, {len(frames)} ranges"
+        )
+    sk = pieces[0][0].skeleton
+    for m, _ in pieces[1:]:
+        if m.skeleton.names != sk.names:
+            raise ValueError("stitch: pieces have different skeletons")
+    phase = song_phase(bar_beats)
+    warps = [node_warp(b) for _, b in pieces]
+    first = int(frames[0, 0]) - 2  # the song's phase at every output frame (and 2 either side)
+    u = phase(np.arange(first, int(frames[-1, 1]) + 2) / fps)
+
+    def source(b: int, k: np.ndarray) -> np.ndarray:
+        return warps[b](u[np.asarray(k) - first] - 4.0 * b)
+
+    cuts, distance, flow = _choose_cuts(
+        pieces, frames, fps, lambda k: u[k - first], source, cut_beats
     )
-    return motion, np.asarray(seams, dtype=np.int64)
+    bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]])
+    roots, rots, blends = [], [], []
+    transform = None
+    reach = limb_reach(sk)
+    for b, (motion, _) in enumerate(pieces):
+        k = np.arange(bounds[b], bounds[b + 1])
+        seg = sample(motion, source(b, k))
+        seg.fps = float(fps)
+        if b > 0:
+            c = int(bounds[b])
+            prev = sample(pieces[b - 1][0], source(b - 1, np.arange(c - 1, c + 2)))
+            if transform is not None:
+                prev = _turned(prev, *transform)
+            now = sample(motion, source(b, np.arange(c - 1, c + 2)))
+            prev.fps = now.fps = float(fps)
+            seg, transform, n = hand_over(
+                prev, now, seg, blend=blend and not flow[b - 1], reach=reach
+            )
+            blends.append(n)
+        roots.append(seg.root_positions)
+        rots.append(seg.rotations)
+    dance = Motion(sk, float(fps), np.concatenate(roots), np.concatenate(rots))
+    line = frames[1:, 0]
+    report = {
+        "cuts": cuts,
+        "cut_beats": u[cuts - first] - u[line - first],
+        "distance": distance,
+        "continuous": flow,
+        "blend_frames": np.asarray(blends, dtype=np.int64),
+    }
+    return dance, report
 
 
-def seam_jumps(positions: np.ndarray, seams: np.ndarray) -> np.ndarray:
-    """``(S, J)`` per-joint position jumps (m) from the frame before each seam to the seam."""
-    seams = np.asarray(seams, dtype=np.int64)
-    return np.linalg.norm(positions[seams] - positions[seams - 1], axis=-1)
+def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndarray, ...]:
+    """Per bar line b >= 1: the output frame within ``cut_beats`` of it (and inside both nodes'
+    stored frames) where ``seam_distance`` between bar b-1's and bar b's nodes is least (within
+    ``TIE``: the frame nearest the line); each bar keeps at least one frame. Returns the cuts,
+    their distances and where the take continues (the distance on the line below ``SAME``: no
+    window is searched there)."""
+    n_seams = len(pieces) - 1
+    if n_seams < 1:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0, dtype=bool)
+    lines = frames[1:, 0].astype(np.int64)
+    on_line, _ = _distances(
+        pieces, source, fps, np.arange(n_seams), [lines[s : s + 1] for s in range(n_seams)]
+    )
+    flow = on_line[:, 0] < SAME
+    cuts, best = lines.copy(), on_line[:, 0].copy()
+    todo = np.flatnonzero(~flow)
+    windows = []
+    for s in todo:
+        k = np.arange(int(frames[s, 0]) + 1, int(frames[s + 1, 1]))
+        near = np.abs(phase(k) - 4.0 * (s + 1)) <= cut_beats + 1e-9
+        windows.append(k[near | (k == lines[s])])
+    if len(todo):
+        dist, valid = _distances(pieces, source, fps, todo, windows)
+    last = int(frames[0, 0])
+    for row, s in enumerate(todo):
+        k = windows[row]
+        ok = (valid[row, : len(k)] | (k == lines[s])) & (k > last)
+        d = np.where(ok, dist[row, : len(k)], np.inf)
+        i = int(np.lexsort((np.abs(k - lines[s]), np.round(d / TIE)))[0])
+        cuts[s], best[s] = k[i], d[i]
+        last = int(cuts[s])
+    return cuts, best, flow
 
 
-def frame_jumps(positions: np.ndarray) -> np.ndarray:
-    """``(F-1, J)`` per-joint position change between consecutive frames (m)."""
-    return np.linalg.norm(np.diff(positions, axis=0), axis=-1)
+def _distances(pieces, source, fps, seams, candidates):
+    """``seam_distance`` between bar s's and bar s+1's nodes at each candidate output frame of
+    each seam s of ``seams``: ``(S, W)`` distances and ``(S, W)`` bool where both nodes have the
+    frames (padded past each seam's candidates with False)."""
+    width = max(len(k) for k in candidates) + 2
+    sk = pieces[0][0].skeleton
+    needed = with_ancestors(sk, [sk.index(sk.canonical[k]) for k in main_joint_keys(sk)])
+    n = len(seams)
+    valid = np.zeros((n, width - 2), dtype=bool)
+    feats = []
+    for side in (0, 1):
+        roots, lo_rot, hi_rot, ts = [], [], [], []
+        for row, (s, k) in enumerate(zip(seams, candidates, strict=True)):
+            m = pieces[s + side][0]
+            # each candidate with the frames either side; padded past the window (masked)
+            idx = source(s + side, np.arange(k[0] - 1, k[0] - 1 + width))
+            inside = (idx >= 0.0) & (idx <= m.n_frames - 1)
+            ok = inside[:-2] & inside[1:-1] & inside[2:]
+            ok[len(k) :] = False
+            valid[row] = ok if side == 0 else valid[row] & ok
+            f = np.clip(idx, 0.0, m.n_frames - 1)
+            lo = np.floor(f).astype(np.int64)
+            hi = np.minimum(lo + 1, m.n_frames - 1)
+            t = (f - lo)[:, None]
+            roots.append(m.root_positions[lo] + t * (m.root_positions[hi] - m.root_positions[lo]))
+            lo_rot.append(m.rotations[lo][:, needed])
+            hi_rot.append(m.rotations[hi][:, needed])
+            ts.append(t)
+        rot = np.zeros((n * width,) + pieces[0][0].rotations.shape[1:])
+        rot[:, needed] = quat.slerp(
+            np.concatenate(lo_rot), np.concatenate(hi_rot), np.concatenate(ts)
+        )
+        root = np.concatenate(roots).reshape(n, width, 3)
+        feats.append(seam_features(sk, root, rot.reshape(n, width, *rot.shape[1:]), 1.0 / fps))
+    return seam_distance(feats[0][0], feats[1][0], feats[0][1]), valid

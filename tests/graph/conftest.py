@@ -6,40 +6,25 @@ import numpy as np
 import pytest
 
 from dancegraph.graph.artifact import graph_from_arrays
-from dancegraph.graph.build import BarSet, BuildParams, beat_sample_times, build_arrays, resample
+from dancegraph.graph.build import BarSet, BuildParams, build_arrays
 from dancegraph.motion.demo import DEMO_CLIPS, make_clip
 
 
-def demo_barset(frames_per_bar: int = 48, seed: int = 0, lead: int = 5) -> BarSet:
+def demo_barset(seed: int = 0) -> BarSet:
     """Every bar of the demo clips (generated, exact beats and signatures) as a ``BarSet``."""
     rng = np.random.default_rng(seed)
-    roots, rots, clip, bar, dur, sig, frames = [], [], [], [], [], [], []
-    clips = []
-    for c, recipe in enumerate(DEMO_CLIPS):
+    clips, takes = [], []
+    for recipe in DEMO_CLIPS:
         motion, bars, sigs = make_clip(recipe, rng)
         clips.append(recipe.id)
-        for b, (beats, s) in enumerate(zip(bars, sigs, strict=True)):
-            times = beat_sample_times(np.array(beats), frames_per_bar, lead)
-            r, q = resample(motion.root_positions, motion.rotations, motion.fps, times)
-            roots.append(r)
-            rots.append(q)
-            clip.append(c)
-            bar.append(b)
-            dur.append(beats[4] - beats[0])
-            sig.append(s)
-            frames.append((round(beats[0] * motion.fps), round(beats[4] * motion.fps)))
-    return BarSet(
-        skeleton=motion.skeleton,
-        clips=clips,
-        clip=np.array(clip),
-        bar=np.array(bar),
-        root=np.stack(roots),
-        rotations=np.stack(rots),
-        duration=np.array(dur),
-        signature=sig,
-        frames=np.array(frames),
-        lead=lead,
-        clip_tags={cid: [f"style:{r.style}"] for cid, r in zip(clips, DEMO_CLIPS, strict=True)},
+        beats = np.array(bars, dtype=float)
+        frames = np.round(beats[:, [0, 4]] * motion.fps).astype(np.int64)
+        takes.append((motion, beats, np.arange(len(bars)), list(sigs), frames))
+    return BarSet.from_takes(
+        motion.skeleton,
+        clips,
+        takes,
+        {cid: [f"style:{r.style}"] for cid, r in zip(clips, DEMO_CLIPS, strict=True)},
     )
 
 

@@ -10,6 +10,7 @@ import pytest
 
 from dancegraph.errors import ModelFileError, NotFoundError
 from dancegraph.graph import artifact
+from dancegraph.motion.retime import BEAT0, sample
 from dancegraph.store import FileStore
 
 
@@ -34,10 +35,32 @@ def test_roundtrip_is_memory_mapped_and_checksummed(tmp_path, demo_build):
     }
     assert man["embedding"]["version"] == "descriptor-v1"
     assert man["params"]["threshold"] == 20.0
-    # the node's motion comes back as a Motion with the graph's skeleton
-    m = g.node_motion(0)
-    assert m.rotations.shape == (48, g.skeleton.n_joints, 4)
+    # the node's motion comes back as a Motion with the graph's skeleton: its bar at the take's
+    # rate, and for the renderer the take's frames around the bar with the bar's beats in them
+    m = g.node_motion(5)
+    frames, beats = g.node_frames(5)
+    assert frames.fps == m.fps == float(arrays["motion_fps"][5])
+    assert m.n_frames == round(beats[BEAT0 + 4] - beats[BEAT0])
+    assert frames.n_frames > m.n_frames + beats[BEAT0 + 1] - beats[BEAT0]  # a beat either side
+    assert m.rotations.shape == (m.n_frames, g.skeleton.n_joints, 4)
     assert np.allclose(np.linalg.norm(m.rotations, axis=-1), 1.0)
+    # the bar's frames are the stored ones from its downbeat on
+    np.testing.assert_allclose(
+        m.root_positions[1:4], sample(frames, beats[BEAT0] + np.arange(1, 4)).root_positions
+    )
+    assert g.node_motion(5, fps=30.0).n_frames == round(m.n_frames * 30.0 / m.fps)
+
+
+def test_an_old_format_graph_asks_for_a_rebuild(tmp_path, demo_build):
+    store = FileStore(tmp_path / "store")
+    key = _write(store, demo_build, "v1")
+    path = store.path(key) / "manifest.json"
+    manifest = json.loads(path.read_text())
+    path.write_text(json.dumps(dict(manifest, format=1)))
+    with pytest.raises(ModelFileError) as err:
+        artifact.load_graph(store.path(key))
+    assert err.value.code == "graph_version"
+    assert "rebuild it: dancegraph dataset build demo" in str(err.value)
 
 
 def test_new_version_loads_while_old_keeps_answering(tmp_path, demo_build):

@@ -9,6 +9,8 @@ import pytest
 
 from dancegraph.graph import artifact
 from dancegraph.graph.build import BuildParams, _lower_body, build_arrays, compute_edges, pair_cost
+from dancegraph.motion.retime import BEAT0
+from dancegraph.motion.stitch import seam_distance
 
 
 def test_node_ids_kinds_and_tags(demo_bars, demo_build):
@@ -41,29 +43,58 @@ def test_node_ids_kinds_and_tags(demo_bars, demo_build):
     assert (mirror_of[kind >= 2] == -1).all()
 
 
+def _rows(arrays: dict, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Node i's stored root, rotations and beats."""
+    r = int(arrays["motion_row"][i])
+    a, b = arrays["motion_ptr"][r], arrays["motion_ptr"][r + 1]
+    return arrays["root"][a:b], arrays["rotations"][a:b].astype(float), arrays["motion_beats"][r]
+
+
 def test_augmented_motion_comes_from_its_sources(demo_bars, demo_build):
     arrays, ids, manifest = demo_build
-    lead = demo_bars.lead
     kind = arrays["node_kind"]
-    rot = arrays["rotations"].astype(float)
-    root = arrays["root"]
     lower = _lower_body(demo_bars.skeleton)
     assert lower[0] and lower.sum() == 9  # hips + two legs of 4 joints
+    # a node stores its take's frames around the bar and where the bar's beats fall in them
+    nb = len(demo_bars.signature)
+    for i in (0, 5, nb - 1):
+        root, rot, beats = _rows(arrays, i)
+        a, b = demo_bars.ptr[i], demo_bars.ptr[i + 1]
+        np.testing.assert_allclose(root, demo_bars.root[a:b], atol=1e-5)
+        np.testing.assert_allclose(beats, demo_bars.beats[i], atol=1e-4)
+    root, _, beats = _rows(arrays, 5)  # inside a take: a beat of frames either side of the bar
+    fps = arrays["motion_fps"][5]
+    assert 0 <= beats[BEAT0 - 1] <= 3 and len(root) - 4 <= beats[BEAT0 + 5] <= len(root) - 1
+    assert beats[BEAT0] - beats[BEAT0 - 1] == pytest.approx(fps * 60 / 100, rel=1e-3)
+    # blend: bar b's frames, root and lower body; bar a's upper body warped beat to beat onto them
     i = int(np.nonzero(kind == 2)[0][0])
     a, b = arrays["node_source"][i]
-    src = demo_bars.rotations
-    assert np.allclose(rot[i][:, ~lower], src[a, lead:][:, ~lower], atol=2e-3)
-    assert np.allclose(rot[i][:, lower], src[b, lead:][:, lower], atol=2e-3)
-    assert np.allclose(root[i], demo_bars.root[b, lead:], atol=1e-5)
+    root, rot, beats = _rows(arrays, i)
+    b_root, b_rot, b_beats = _rows(arrays, b)
+    a_root, a_rot, a_beats = _rows(arrays, a)
+    np.testing.assert_allclose(root, b_root, atol=1e-5)
+    np.testing.assert_allclose(beats, b_beats)
+    assert np.allclose(rot[:, lower], b_rot[:, lower], atol=2e-3)
+    for j in range(5):  # on every beat the upper body shows bar a's pose on its own beat
+        got = rot[int(round(b_beats[BEAT0 + j]))][~lower]
+        want = a_rot[int(round(a_beats[BEAT0 + j]))][~lower]
+        assert np.abs(np.sum(got * want, axis=-1)).min() > 0.98
+    # shuffle: bar a up to its beat 2, then bar b's joints (below the root) after the blend
     j = int(np.nonzero(kind == 3)[0][0])
     a, b = arrays["node_source"][j]
-    half = rot.shape[1] // 2
-    assert np.allclose(rot[j][:half], src[a, lead : lead + half], atol=2e-3)
-    # the second half is bar b's, re-aligned at the seam: joint rotations below the root agree
-    assert np.allclose(rot[j][half + 4 :, 1:], src[b, lead + half + 4 :, 1:], atol=2e-3)
+    root, rot, beats = _rows(arrays, j)
+    a_root, a_rot, a_beats = _rows(arrays, a)
+    b_root, b_rot, b_beats = _rows(arrays, b)
+    two = int(np.floor(a_beats[BEAT0 + 2]))
+    assert np.allclose(rot[: two + 1], a_rot[: two + 1], atol=2e-3)
+    np.testing.assert_allclose(beats[: BEAT0 + 3], a_beats[: BEAT0 + 3])
+    shift = round(b_beats[BEAT0 + 2] - a_beats[BEAT0 + 2])  # whole frames: b's own frames
+    np.testing.assert_allclose(beats[BEAT0 + 3 :], b_beats[BEAT0 + 3 :] - shift, atol=1e-5)
+    late = np.arange(int(beats[BEAT0 + 4]) - 3, len(rot))  # from just before the closing downbeat
+    np.testing.assert_allclose(rot[late, 1:], b_rot[late + shift, 1:], atol=1e-3)
     # mirror: the root path is reflected in x
-    nb = len(demo_bars.signature)
-    assert np.allclose(root[nb][:, 0], -root[0][:, 0], atol=1e-5)
+    root, _, _ = _rows(arrays, nb)
+    assert np.allclose(root[:, 0], -_rows(arrays, 0)[0][:, 0], atol=1e-5)
 
 
 def test_edges_follow_threshold_and_keep_takes_linked(demo_bars, demo_build):
@@ -78,28 +109,20 @@ def test_edges_follow_threshold_and_keep_takes_linked(demo_bars, demo_build):
     assert (
         np.diff(indptr) <= BuildParams().max_out_degree + 2 * BuildParams().min_degree + 2
     ).all()
-    # every consecutive pair of a take (and of its mirror) is linked at its true cost
-    blocks = manifest["feature_blocks"]
+    # every consecutive pair of a take (and of its mirror) is linked, its pose term ~0 (q's
+    # lead-in is p's continuation): the cost is the style term
     nb = len(demo_bars.signature)
     edge = {(int(s), int(d)): float(c) for s, d, c in zip(src, indices, costs, strict=True)}
+    style = arrays["style"].astype(float)
     for i in range(nb - 1):
         if demo_bars.clip[i] == demo_bars.clip[i + 1]:
             for p, q in ((i, i + 1), (i + nb, i + 1 + nb)):
-                true = pair_cost(
-                    arrays["exit"][[p]],
-                    arrays["entry"][[q]],
-                    arrays["style"][[p]],
-                    arrays["style"][[q]],
-                    blocks,
-                    1.0,
-                    1.5,
-                )[0]
-                assert edge[(p, q)] == pytest.approx(true, rel=1e-4, abs=1e-4)
-    # the consecutive bars' pose term is ~0: the entry window is the frames before the bar
-    i = 0
+                t_z = 1.5 * np.linalg.norm(style[p] - style[q])
+                assert edge[(p, q)] == pytest.approx(t_z, abs=1e-3)
+    blocks = manifest["feature_blocks"]
     t_d = pair_cost(
-        arrays["exit"][[i]],
-        arrays["entry"][[i + 1]],
+        arrays["exit"][[0]],
+        arrays["entry"][[1]],
         arrays["style"][[0]],
         arrays["style"][[0]],
         blocks,
@@ -116,21 +139,55 @@ def test_edges_follow_threshold_and_keep_takes_linked(demo_bars, demo_build):
 
 
 def test_chunked_edges_match_brute_force(demo_build):
+    """Edges from chunks of rows over several cut offsets (NaN where a node has no frames) equal
+    the brute-force least over the offsets of every pair."""
     arrays, ids, manifest = demo_build
     blocks = manifest["feature_blocks"]
-    entry, exit_, style = arrays["entry"], arrays["exit"], arrays["style"]
+    rng = np.random.default_rng(1)
     n = len(ids)
+    entry = np.stack([arrays["entry"], arrays["entry"][rng.permutation(n)]])
+    exit_ = np.stack([arrays["exit"], arrays["exit"][rng.permutation(n)]])
+    entry[1, rng.random(n) < 0.3] = np.nan
+    exit_[1, rng.random(n) < 0.3] = np.nan
+    entry, exit_ = entry.astype(np.float32), exit_.astype(np.float32)
+    style = arrays["style"]
     params = BuildParams(threshold=40.0, max_out_degree=n, chunk=7)
     s1, d1, c1, _ = compute_edges(entry, exit_, style, blocks, params, np.zeros((0, 2), int))
     p, q = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    full = pair_cost(
-        exit_[p.ravel()], entry[q.ravel()], style[p.ravel()], style[q.ravel()], blocks, 1.0, 1.5
-    ).reshape(n, n)
+    p, q = p.ravel(), q.ravel()
+    full = pair_cost(exit_[:, p], entry[:, q], style[p], style[q], blocks, 1.0, 1.5).reshape(n, n)
+    offset0 = pair_cost(exit_[0, p], entry[0, q], style[p], style[q], blocks, 1.0, 1.5)
+    assert (full.ravel() <= offset0 + 1e-6).all() and (full.ravel() < offset0 - 1e-3).any()
     np.fill_diagonal(full, np.inf)
     want = set(zip(*np.nonzero(full < 40.0), strict=True))
     got = {(int(a), int(b)) for a, b, c in zip(s1, d1, c1, strict=True) if c < 40.0}
     assert got == {(int(a), int(b)) for a, b in want}
     assert np.allclose(c1[c1 < 40.0], full[s1[c1 < 40.0], d1[c1 < 40.0]], rtol=1e-3, atol=1e-3)
+
+
+def test_edge_cost_is_the_renderers_seam_distance(demo_bars, demo_build):
+    """An edge's pose term is the least seam distance over the cut offsets (the renderer's own
+    distance), with p dancing on past its bar and q at its lead-in, both at the same phase."""
+    from dancegraph.graph.build import _Nodes, transition_features
+
+    arrays, ids, manifest = demo_build
+    b = demo_bars
+    nodes = _Nodes(b.ptr, b.root.astype(float), b.rotations, b.beats.astype(float), b.fps)
+    seam = manifest["seam"]
+    offsets = np.asarray(seam["offsets"])
+    assert offsets[0] == 0.0 and np.abs(offsets).max() == pytest.approx(1.0)
+    exit_, entry, blocks = transition_features(demo_bars.skeleton, nodes, offsets, seam["beat_s"])
+    nb = len(b.signature)
+    np.testing.assert_allclose(exit_[0], arrays["exit"][:nb], atol=1e-5)
+    rows = np.arange(len(arrays["indices"]))
+    src = np.searchsorted(arrays["indptr"], rows, side="right") - 1
+    dst = arrays["indices"][rows]
+    rows = rows[(src < nb) & (dst < nb)]  # edges between original bars
+    src, dst = src[rows], dst[rows]
+    assert len(rows) > 50
+    t_d = np.nanmin(seam_distance(exit_[:, src], entry[:, dst], blocks), axis=0)
+    t_z = np.linalg.norm(arrays["style"][src] - arrays["style"][dst], axis=1)
+    np.testing.assert_allclose(arrays["costs"][rows], t_d + 1.5 * t_z, rtol=1e-3, atol=1e-3)
 
 
 def test_lower_threshold_gives_fewer_edges(demo_bars):
@@ -218,7 +275,7 @@ def test_compressed_features_keep_transition_costs(demo_build):
     pc = pair_cost(
         arrays["exit_pc"][p], arrays["entry_pc"][q], st[p], st[q], manifest["pc_blocks"], 1.0, 1.5
     )
-    assert arrays["exit_pc"].shape[1] < arrays["exit"].shape[1] / 4
+    assert arrays["exit_pc"].shape[1] < arrays["exit"].shape[1]
     assert np.all(pc <= full + 1e-3)  # a projection never lengthens a difference
     assert np.median((full - pc) / full) < 0.05 and np.corrcoef(full, pc)[0, 1] > 0.98
 

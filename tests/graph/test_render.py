@@ -77,6 +77,12 @@ def test_rendered_files_parse_and_follow_the_music_bars(demo_graph, analysis, re
             assert entry["bars"][b]["node"] == alt["nodes"][b]
         # the middle of each bar is the node's own motion, time-warped onto the bar
         _check_bars_hold_their_nodes(demo_graph, motion, alt["nodes"], frames)
+        # seams: where a node hands over to another, within a beat of its bar line
+        assert entry["seams"] == sorted(entry["seams"]) and entry["seams"]
+        assert len(entry["seams"]) == len(entry["seam_bars"]) == len(entry["cut_beats"])
+        for s, b, off in zip(entry["seams"], entry["seam_bars"], entry["cut_beats"], strict=True):
+            beat = (analysis.bar_beats[b, 1] - analysis.bar_beats[b, 0]) * FPS
+            assert abs(off) <= 1.0 + 1e-6 and abs(s - frames[b, 0]) <= beat + 1
 
 
 def _check_bars_hold_their_nodes(graph, motion, nodes, frames):

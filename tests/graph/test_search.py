@@ -14,6 +14,7 @@ from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
 from dancegraph.graph.problem import structure_pairs
 from dancegraph.graph.search import placed_motion, root_trajectory, search
+from dancegraph.motion.retime import BEAT0
 from dancegraph.render import render_path
 from dancegraph.spec import Spec
 
@@ -38,12 +39,13 @@ def travel_graph():
     """Demo bars whose root travels 0.3 m per bar: groove along +x, pop along -x, step in place."""
     bars = demo_barset()
     root = bars.root.copy()
-    n = root.shape[1]
-    t = (np.arange(n) - bars.lead) / (n - bars.lead)
     sign = np.array(
         [{"groove": 1.0, "pop": -1.0, "step": 0.0}[bars.clips[c].split("_")[0]] for c in bars.clip]
     )
-    root[:, :, 0] += 0.3 * sign[:, None] * t[None, :]
+    for i in range(len(bars.clip)):  # t: 0 at the bar's downbeat, 1 at its closing one
+        a, b = bars.ptr[i], bars.ptr[i + 1]
+        t = (np.arange(b - a) - bars.beats[i, BEAT0]) / (bars.duration[i] * bars.fps[i])
+        root[a:b, 0] += 0.3 * sign[i] * t
     return _graph(dataclasses.replace(bars, root=root))
 
 
@@ -220,7 +222,7 @@ def test_stage_bound_holds_on_the_root_trajectory(travel_graph, song):
             )
             # and the renderer's file follows them: the bound holds on the rendered root too
             dance, _ = render_path(
-                travel_graph, alt.nodes, song.bars, 30.0, placements=alt.placements
+                travel_graph, alt.nodes, song.bar_beats, 30.0, placements=alt.placements
             )
             xz = dance.root_positions[:, [0, 2]]
             assert xz.min() >= -0.6 - 1e-6 and xz.max() <= 0.6 + 1e-6
@@ -234,7 +236,8 @@ def test_waypoint_is_reached(travel_graph, song):
             waypoints=[{"second": second, "position": target, "tolerance": 0.3}], **free_spec
         )
         alt = search(travel_graph, song, spec).alternatives[0]
-        pos = _rendered_root(travel_graph, alt)[8 * 48][[0, 2]]
+        first = sum(travel_graph.node_motion(n).n_frames for n in alt.index[:8])
+        pos = _rendered_root(travel_graph, alt)[first][[0, 2]]
         assert np.hypot(*(pos - np.array(target))) <= 0.3 + 1e-6
     free = search(travel_graph, song, _spec(**free_spec)).alternatives[0]
     assert not (

@@ -60,8 +60,18 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     # the random walk ignores the song's structure
     assert metrics["rows"]["random_walk"]["repeat_share"] < 1.0
     # graph dances have seams measured against the library; real dances have none
-    assert ours["seam_median_percentile"] is not None
     assert metrics["rows"]["real"]["seam_median_percentile"] is None
+    # every search dance carries its seam section: hand-overs scored against the library, the
+    # worst seam with its bar, foot sliding near seams beside the library's own, every bar line
+    for dance in metrics["songs"][0]["rows"]["ours"]["dances"]:
+        seams = dance["seams"]
+        assert seams["chance"]["median_percentile"] > 0 and seams["library_skate"]["steps"] > 0
+        n_bars = metrics["songs"][0]["analysis"]["n_bars"]
+        assert seams["bar_lines"]["count"] == n_bars - 1
+        assert seams["skate"]["steps"] >= 0 and seams["flagged_frames"] == []
+        if seams["count"]:
+            assert 0 < seams["worst"]["bar"] < n_bars
+            assert seams["worst"]["percentile"] >= seams["median_percentile"]
     song = metrics["songs"][0]
     assert song["song"] == "song.wav" and set(song["rows"]) == set(ROWS)
     assert set(SCALARS) <= set(song["rows"]["ours"]["mean"])
@@ -75,7 +85,8 @@ def test_eval_runs_every_row_and_writes_metrics_and_report(setup, capsys):
     assert ours["phase_r"]["half_beat"] is None and ours["bas_fact"]["other_song"] is None  # 1 song
     html = (out / "report.html").read_text()
     assert "Sync against chance" in html and "CM beat acc. (rhythm points" in html
-    assert len(_images(html)) == 4  # beats, bars/nodes, per-bar costs, signature
+    assert len(_images(html)) == 5  # beats, bars/nodes, per-bar costs, signature, seams
+    assert "<h3>Seams</h3>" in html
     assert "<script" not in html and "http" not in html  # self-contained
     assert "Tempo-matched clip concatenation" in html
 
@@ -93,7 +104,7 @@ def test_eval_result_scores_a_synthesize_folder(setup, capsys):
     assert row["dances"] == 2 and row["controls_share"] == 1.0 and row["repeat_share"] == 1.0
     # the song recorded in the timeline lies beside the result folder: its own beats are used
     assert metrics["music_beats"] == "librosa_percussive"
-    assert len(_images((out / "report.html").read_text())) == 4
+    assert len(_images((out / "report.html").read_text())) == 5
 
 
 def test_eval_bad_input_gives_coded_errors(setup, capsys, tmp_path):

@@ -184,6 +184,40 @@ def test_seam_with_a_pop_is_flagged_and_a_smooth_one_is_not():
     assert rep["flagged"] == 1 and rep["flagged_share"] == 0.5
 
 
+def test_the_chance_row_scores_every_library_frame_as_a_seam():
+    rng = np.random.default_rng(0)
+    library = [pulse(900) + rng.normal(0, 1e-3, (900, 4, 3)), pulse(700)]
+    ref = smoothness.Reference.from_takes(library, FPS)
+    scores = []
+    for take in library:
+        rows = smoothness.seam_report(take, FPS, np.arange(2, len(take)), ref)["seams"]
+        scores += [max(r["speed_percentile"], r["acc_percentile"]) for r in rows]
+    assert ref.chance["frames"] == len(scores)
+    assert ref.chance["median_percentile"] == pytest.approx(np.median(scores))
+    flagged = np.mean(np.array(scores) > smoothness.FLAG_PERCENTILE)
+    assert ref.chance["flagged_share"] == pytest.approx(flagged) and 0.0 < flagged < 0.05
+
+
+def test_foot_skating_counts_only_the_chosen_frames(salsa_dir):
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.fk import forward_kinematics
+
+    take = read_bvh(salsa_dir / "60_03_scaled.bvh", fps=60).slice(0, 900)
+    pos, world = forward_kinematics(take)
+    whole = physical.foot_skating(pos, world, take.skeleton, FPS)
+    same = physical.foot_skating(pos, world, take.skeleton, FPS, np.ones(900, dtype=bool))
+    assert same == whole and whole["steps"] > 300
+    half = np.zeros(900, dtype=bool)
+    half[:450] = True
+    first = physical.foot_skating(pos, world, take.skeleton, FPS, half)
+    second = physical.foot_skating(pos, world, take.skeleton, FPS, ~half)
+    assert first["steps"] + second["steps"] <= whole["steps"] and first["steps"] > 50
+    pooled = first["mean_speed_m_s"] * first["steps"] + second["mean_speed_m_s"] * second["steps"]
+    assert pooled / (first["steps"] + second["steps"]) == pytest.approx(
+        whole["mean_speed_m_s"], rel=0.1
+    )
+
+
 def test_structure_counts_satisfied_and_violated_pairs():
     tags = [
         {"label": "A", "occurrence": o, "index": i, "meter_id": m}
@@ -288,7 +322,8 @@ def test_smpl_positions_of_the_demo_skeleton(demo_bars):
     from dancegraph.motion.fk import fk_arrays
 
     sk = demo_bars.skeleton
-    pos, world = fk_arrays(sk, demo_bars.root[0], demo_bars.rotations[0])
+    rows = slice(demo_bars.ptr[0], demo_bars.ptr[1])
+    pos, world = fk_arrays(sk, demo_bars.root[rows], demo_bars.rotations[rows].astype(float))
     smpl = kinetic.smpl_positions(sk, pos, world)
     assert smpl.shape == (pos.shape[0], 24, 3)
     assert np.allclose(smpl[:, 0], pos[:, sk.index("hips")])

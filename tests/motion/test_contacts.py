@@ -115,3 +115,25 @@ def test_unmapped_skeleton_is_a_clear_error(salsa):
     assert info.value.code == "skeleton_unmapped" and "left_ankle" in info.value.message
     with pytest.raises(DanceGraphError):
         foot_contacts(pos, motion.fps, bare)
+
+
+def test_correction_glides_between_close_contact_runs(salsa):
+    """Two contact runs two frames apart, the foot sliding through both: each run is pinned to
+    its own spot, so the correction changes by ~0.3 m between them; it glides over the gap
+    instead of switching in one frame (which moved the foot by the whole change at once)."""
+    motion = salsa.slice(0, 120).copy()
+    motion.root_positions[:, 0] += 0.5 * np.arange(motion.n_frames) / motion.fps  # 0.5 m/s
+    contacts = np.zeros((motion.n_frames, 2), dtype=bool)
+    contacts[20:50, 0] = True
+    contacts[52:90, 0] = True
+    cleaned, report = clean_foot_skate(motion, contacts)
+    sk = motion.skeleton
+    p, r = forward_kinematics(cleaned)
+    after = foot_points(p, sk, r)[:, 0, 0, [0, 2]]
+    p, r = forward_kinematics(motion)
+    before = foot_points(p, sk, r)[:, 0, 0, [0, 2]]
+    corr = after - before
+    change = np.linalg.norm(corr[52] - corr[49])
+    assert change > 0.2
+    steps = np.linalg.norm(np.diff(corr[49:53], axis=0), axis=-1)
+    assert steps.max() < 0.5 * change

@@ -75,3 +75,38 @@ def test_resample_keeps_duration(salsa):
         assert abs(out.duration_s - salsa.duration_s) <= 0.5 / fps
     with pytest.raises(ValueError):
         retime(salsa, 0, 30.0)
+
+
+def test_warp_is_monotone_smooth_and_passes_its_anchors():
+    """Uneven anchors: through every anchor, never reversing, slopes continuous (C1), the same
+    curve as scipy's PCHIP between the anchors and straight lines beyond them."""
+    from scipy.interpolate import PchipInterpolator
+
+    from dancegraph.motion.retime import Warp
+
+    rng = np.random.default_rng(0)
+    x = np.cumsum(rng.uniform(0.2, 1.0, 9))
+    y = np.cumsum(rng.uniform(5.0, 40.0, 9))
+    w = Warp(x, y)
+    np.testing.assert_allclose(w(x), y, atol=1e-12)
+    t = np.linspace(x[0] - 2.0, x[-1] + 2.0, 4001)
+    v = w(t)
+    assert (np.diff(v) > 0).all()
+    inside = (t >= x[0]) & (t <= x[-1])
+    np.testing.assert_allclose(v[inside], PchipInterpolator(x, y)(t[inside]), atol=1e-9)
+    slope = np.diff(v) / np.diff(t)
+    assert np.abs(np.diff(slope)).max() < 0.05 * np.abs(slope).max()  # no kink anywhere
+    below = t < x[0]
+    np.testing.assert_allclose(np.diff(v[below]) / np.diff(t[below]), slope[0], rtol=1e-6)
+    with pytest.raises(ValueError):
+        Warp(np.array([1.0]), np.array([2.0]))
+
+
+def test_song_phase_counts_beats_across_bars():
+    from dancegraph.motion.retime import song_phase
+
+    bars = np.array([[0.5, 1.0, 1.6, 2.0, 2.5], [2.5, 3.0, 3.4, 4.0, 4.5], [4.6, 5.0, 5.5, 6, 6.5]])
+    phase = song_phase(bars)
+    np.testing.assert_allclose(phase(bars[:, :4].ravel()), np.arange(12), atol=1e-12)
+    # a gap between bars 1 and 2 belongs to bar 1: its closing downbeat is bar 2's first beat
+    assert phase(np.array([4.5]))[0] < 8.0 and phase(np.array([6.5]))[0] == pytest.approx(12.0)

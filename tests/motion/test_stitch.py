@@ -1,4 +1,5 @@
-"""Stitching real salsa bars: root alignment and seams as smooth as the data."""
+"""Seams on real salsa bars and on generated motion: where the cut falls, what the blend keeps,
+and that every beat of a node lands on the song's beat of the same number."""
 
 from __future__ import annotations
 
@@ -7,13 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dancegraph.metrics.smoothness import Reference, seam_report
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fk import forward_kinematics
-from dancegraph.motion.retime import retime
-from dancegraph.motion.stitch import frame_jumps, seam_jumps, stitch
+from dancegraph.motion.retime import NODE_BEATS
+from dancegraph.motion.skeleton import Motion
+from dancegraph.motion.stitch import hand_over, seam_distance, seam_features, stitch
+from dancegraph.render import bar_frames
 
-BAR = 86  # one salsa bar at ~168 BPM read at 60 fps
+BEAT = 21.5  # frames per beat of a salsa bar at ~168 BPM read at 60 fps
+FPS = 60.0
 
 
 @pytest.fixture(scope="module")
@@ -24,23 +29,43 @@ def takes(salsa_dir: Path):
     ]
 
 
-@pytest.fixture(scope="module")
-def pool(takes):
-    return [t.slice(s, s + BAR) for t in takes for s in range(0, t.n_frames - BAR, 43)]
+def _piece(take: Motion, start: float, beat: float = BEAT) -> tuple[Motion, np.ndarray]:
+    """The frames of ``take`` around the bar whose downbeat is frame ``start`` (beats ``beat``
+    frames apart), and where its beats -2 .. 6 fall in them."""
+    lo = int(np.floor(start - beat)) - 2
+    hi = int(np.ceil(start + 5 * beat)) + 3
+    return take.slice(lo, hi), start + NODE_BEATS * beat - lo
 
 
-def _pose(m, k):
+def _song(n_bars: int, bar_s: float = 1.6, wobble: float = 0.0, seed: int = 0) -> np.ndarray:
+    """``(n_bars, 5)`` beat times of a song; ``wobble``: beats moved by up to this share of a
+    beat (uneven beats within each bar)."""
+    rng = np.random.default_rng(seed)
+    beats = np.arange(4 * n_bars + 1) * bar_s / 4 + 0.5
+    beats[1:-1] += rng.uniform(-wobble, wobble, beats.size - 2) * bar_s / 4
+    return np.stack([beats[4 * b : 4 * b + 5] for b in range(n_bars)])
+
+
+def _pose(m: Motion, k: int) -> np.ndarray:
     p, r = forward_kinematics(m.slice(k, k + 1))
     p = p[0] - p[0, 0] * [1.0, 0.0, 1.0]
     turn = quat.from_y_angle(-quat.heading_angle(r[0, 0]))
     return quat.rotate(np.broadcast_to(turn, p.shape[:-1] + (4,)), p)
 
 
-def _graph_chain(pool, n, seed):
-    """Bars chained as a motion graph links them: each next bar among the 5 whose first pose is
-    nearest the current bar's last pose (heading and ground position factored out)."""
-    starts = np.stack([_pose(b, 0) for b in pool])
-    ends = np.stack([_pose(b, b.n_frames - 1) for b in pool])
+@pytest.fixture(scope="module")
+def pool(takes):
+    """Bars every half bar of both takes (the previous beat and the next available)."""
+    return [
+        _piece(t, s) for t in takes for s in np.arange(2 * BEAT, t.n_frames - 6 * BEAT, 2 * BEAT)
+    ]
+
+
+def _graph_chain(pool, n: int, seed: int) -> list:
+    """Bars chained as a motion graph links them: each next bar among the 5 whose downbeat pose
+    is nearest the current bar's closing downbeat pose (heading and ground position out)."""
+    starts = np.stack([_pose(m, int(round(b[2]))) for m, b in pool])
+    ends = np.stack([_pose(m, int(round(b[6]))) for m, b in pool])
     rng = np.random.default_rng(seed)
     idx = [int(rng.integers(len(pool)))]
     for _ in range(n - 1):
@@ -50,80 +75,169 @@ def _graph_chain(pool, n, seed):
     return [pool[i] for i in idx]
 
 
-def _seam_window_ratio(bars, method):
-    source_p99 = np.percentile(
-        np.concatenate([frame_jumps(forward_kinematics(b)[0]).ravel() for b in bars]), 99
-    )
-    motion, seams = stitch(bars, method=method)
-    assert motion.n_frames == sum(b.n_frames for b in bars)
-    np.testing.assert_array_equal(seams, np.cumsum([b.n_frames for b in bars])[:-1])
-    pos, _ = forward_kinematics(motion)
-    jumps = frame_jumps(pos)
-    w = int(round(0.3 * bars[0].fps))  # the blend on either side of a seam
-    # the blend window: both sides of a split seam, the frames after an inertialized one
-    before = w if method == "split" else 0
-    around = np.concatenate([jumps[s - 1 - before : s + w] for s in seams])
-    at_seam = seam_jumps(pos, seams)
-    return np.percentile(around, 99) / source_p99, np.percentile(at_seam, 99) / source_p99
+def test_seams_score_like_the_library_frames(takes, pool):
+    """30 hand-overs between real salsa bars at 60 fps: no seam above the takes' own p99 of joint
+    speed and acceleration, median seam percentile below 85; without the blend they pop."""
+    ref = Reference.from_takes([forward_kinematics(t)[0] for t in takes], FPS)
+    chain = _graph_chain(pool, 31, seed=1)
+    bar_beats = _song(len(chain))
+    frames = bar_frames(bar_beats[:, [0, 4]], FPS)
+    dance, rep = stitch(chain, bar_beats, frames, FPS)
+    assert dance.n_frames == frames[-1, 1] - frames[0, 0] and dance.fps == FPS
+    seams = rep["cuts"][~rep["continuous"]] - frames[0, 0]
+    assert len(seams) >= 20  # (the pool overlaps: a bar may be followed by its take's next)
+    assert (np.abs(rep["cut_beats"]) <= 1.0 + 1e-9).all()
+    assert np.abs(rep["cut_beats"]).max() > 0.2  # some cuts move off the bar line
+    pos, _ = forward_kinematics(dance)
+    good = seam_report(pos, FPS, seams, ref)
+    assert good["flagged"] == 0 and good["median_percentile"] < 85.0
+    raw, _ = stitch(chain, bar_beats, frames, FPS, blend=False)
+    bad = seam_report(forward_kinematics(raw)[0], FPS, seams, ref)
+    assert bad["flagged_share"] > 0.3 and bad["median_percentile"] > 95.0
 
 
-@pytest.mark.parametrize("fps", [30.0, 60.0])
-@pytest.mark.parametrize("method", ["split", "inertialize"])
-def test_seams_as_smooth_as_the_data(pool, fps, method):
-    """p99 per-frame joint jump around seams <= 1.2 x the source clips' own p99."""
-    bars = _graph_chain(pool, 30, seed=1)
-    if fps != 60.0:
-        bars = [retime(b, int(round(BAR * fps / 60)), fps) for b in bars]
-    around, at_seam = _seam_window_ratio(bars, method)
-    assert around <= 1.2 and at_seam <= 1.2
-    # without blending the seams pop
-    raw, seams = stitch(bars, blend_frames=0)
-    raw_pos, _ = forward_kinematics(raw)
-    ref = np.percentile(
-        np.concatenate([frame_jumps(forward_kinematics(b)[0]).ravel() for b in bars]), 99
-    )
-    assert np.percentile(seam_jumps(raw_pos, seams), 99) > 2.0 * ref
+def test_cut_falls_where_the_nodes_match(takes):
+    """q's frames from half a beat after its downbeat are p's own frames half a beat after p's
+    closing downbeat: the cut moves there (about +0.5 beat), where the two match exactly."""
+    p_motion, p_beats = _piece(takes[0], 300.0)
+    q_motion, q_beats = _piece(takes[1], 500.0)
+    q_motion = q_motion.copy()
+    splice = int(round(q_beats[2] + 0.5 * BEAT))  # q's frame at its beat 0.5
+    src = int(round(p_beats[6] + 0.5 * BEAT))  # p's frame at its beat 4.5
+    n = min(q_motion.n_frames - splice, p_motion.n_frames - src)
+    q_motion.root_positions[splice : splice + n] = p_motion.root_positions[src : src + n]
+    q_motion.rotations[splice : splice + n] = p_motion.rotations[src : src + n]
+    song = 1.0 + np.arange(9) * BEAT / FPS  # the source's own tempo
+    bar_beats = np.stack([song[:5], song[4:]])
+    frames = bar_frames(bar_beats[:, [0, 4]], FPS)
+    dance, rep = stitch([(p_motion, p_beats), (q_motion, q_beats)], bar_beats, frames, FPS)
+    assert not rep["continuous"][0]
+    assert 0.45 <= rep["cut_beats"][0] <= 0.75
+    assert rep["distance"][0] < 1e-3
 
 
-def test_root_alignment_carries_position_and_heading(pool):
-    a, b = pool[3], pool[20]
-    motion, seams = stitch([a, b], blend_frames=0)
-    s = int(seams[0])
-    root = motion.root_positions
-    # ground position continues at the previous velocity; height stays the clip's own
-    np.testing.assert_allclose(root[s, [0, 2]], (2 * root[s - 1] - root[s - 2])[[0, 2]], atol=1e-9)
-    np.testing.assert_allclose(root[s:, 1], b.root_positions[:, 1], atol=1e-12)
-    h = quat.heading_angle(motion.rotations[:, 0])
-    turn = np.angle(np.exp(1j * (h[s - 1] - h[s - 2])))
-    assert abs(np.angle(np.exp(1j * (h[s] - (h[s - 1] + turn))))) < 1e-9
-    # the clip's own path is kept: same shape, turned and moved
-    d_src = np.linalg.norm(np.diff(b.root_positions[:, [0, 2]], axis=0), axis=-1)
-    d_out = np.linalg.norm(np.diff(root[s:, [0, 2]], axis=0), axis=-1)
-    np.testing.assert_allclose(d_out, d_src, atol=1e-9)
+def test_hand_over_continues_pose_and_velocity(pool):
+    """At the cut the dance shows p's pose (every joint within 1 mm) moving at about p's velocity
+    (the jump is a fifth of the unblended one), and q's own motion after the blend."""
+    (pm, pb), (qm, qb) = pool[3], pool[40]
+    c = int(round(pb[6]))  # p's closing downbeat
+    k = int(round(qb[2]))  # q's downbeat
+    before = pm.slice(c - 1, c + 2)
+    after = qm.slice(k - 1, k + 2)
+    segment = qm.slice(k, qm.n_frames)
+    joined, (turn, pivot, target), n = hand_over(before, after, segment)
+    assert 1 <= n < segment.n_frames
+    p_pos, _ = forward_kinematics(pm.slice(c - 1, c + 2))
+    j_pos, _ = forward_kinematics(joined.slice(0, 2))
+    np.testing.assert_allclose(j_pos[0], p_pos[1], atol=1e-3)
+    v_p = (p_pos[2] - p_pos[0]) / 2 * FPS
+    jump = np.linalg.norm((j_pos[1] - p_pos[0]) / 2 * FPS - v_p, axis=-1).max()
+    # after the blend: q's own pose (turned and moved on the ground only)
+    tail = joined.rotations[n:, 1:]
+    np.testing.assert_allclose(np.abs(np.sum(tail * segment.rotations[n:, 1:], -1)), 1.0, atol=1e-9)
+    # the same hand-over without the blend only aligns the root: the pose jumps
+    raw, _, none = hand_over(before, after, segment, blend=False)
+    assert none == 0
+    r_pos, _ = forward_kinematics(raw.slice(0, 2))
+    assert np.abs(r_pos[0] - p_pos[1]).max() > 0.02
+    raw_jump = np.linalg.norm((r_pos[1] - p_pos[0]) / 2 * FPS - v_p, axis=-1).max()
+    assert jump < 0.2 * raw_jump
 
 
-def test_continuous_halves_restitch_to_the_original(takes):
-    take = takes[0].slice(200, 500)
-    motion, _ = stitch([take.slice(0, 150), take.slice(150, 300)])
-    p0, _ = forward_kinematics(take)
-    p1, _ = forward_kinematics(motion)
-    assert np.abs(p1 - p0).max() < 0.02  # only the one-frame extrapolation error is blended away
-    np.testing.assert_allclose(p1[:100], p0[:100], atol=1e-12)  # far from the seam: untouched
-
-
-def test_blend_leaves_the_clip_after_the_window(pool):
-    motion, seams = stitch([pool[0], pool[9]], blend_frames=10)
-    tail = motion.rotations[seams[0] + BAR - 1, 1:]
+def test_a_take_continuing_is_no_seam(takes):
+    """Consecutive bars of one take: no cut moves, nothing is blended, the dance is the take."""
+    take = takes[0]
+    starts = 200.0 + 4 * BEAT * np.arange(6)
+    pieces = [_piece(take, s) for s in starts]
+    bar_beats = (200.0 + BEAT * np.arange(25)) / FPS
+    bar_beats = np.stack([bar_beats[4 * b : 4 * b + 5] for b in range(6)])
+    frames = bar_frames(bar_beats[:, [0, 4]], FPS)
+    dance, rep = stitch(pieces, bar_beats, frames, FPS)
+    assert rep["continuous"].all() and (rep["cut_beats"] == 0).all()
+    assert (rep["blend_frames"] == 0).all()
     np.testing.assert_allclose(
-        np.abs(np.sum(tail * pool[9].rotations[-1, 1:], axis=-1)), 1.0, atol=1e-12
+        dance.root_positions, take.root_positions[frames[0, 0] : frames[-1, 1]], atol=1e-6
     )
 
 
-def test_rejects_mixed_clips(pool, modern_dir: Path):
-    other = read_bvh(modern_dir / "05_02.bvh", scale=0.056444).slice(0, 50)
+def _clock(n_frames: int, fps: float) -> Motion:
+    """Generated motion whose frame index can be read back: joint 1 turns about X by 0.001 rad
+    per frame (frame f shows angle f / 1000)."""
+    from dancegraph.motion.demo import demo_skeleton
+
+    sk = demo_skeleton()
+    rot = quat.identity((n_frames, sk.n_joints))
+    rot[:, 1] = quat.from_rotvec(np.arange(n_frames)[:, None] * [0.001, 0.0, 0.0])
+    return Motion(sk, fps, np.zeros((n_frames, 3)), rot)
+
+
+def _shown(motion: Motion) -> np.ndarray:
+    return quat.to_rotvec(motion.rotations[:, 1])[:, 0] * 1000.0
+
+
+@pytest.mark.parametrize("wobble", [0.0, 0.15])
+def test_beats_land_on_the_song_beats(wobble):
+    """Every source beat lands on the song's beat of the same number (uneven song beats and
+    uneven source beats), and the warp's speed has no jump at the bar lines."""
+    rng = np.random.default_rng(3)
+    n_bars = 6
+    src_fps = 120.0
+    beats_src = np.cumsum(rng.uniform(40.0, 52.0, 4 * n_bars + 5))  # uneven, sub-frame
+    clock = _clock(int(beats_src[-1]) + 20, src_fps)
+    pieces = []
+    for b in range(n_bars):
+        own = beats_src[4 * b : 4 * b + 9]  # beats -2 .. 6 of bar b
+        lo = int(np.floor(own[1])) - 2
+        hi = int(np.ceil(own[7])) + 3
+        pieces.append((clock.slice(lo, hi), own - lo))
+    song = _song(n_bars, bar_s=1.9, wobble=wobble, seed=4)
+    frames = bar_frames(song[:, [0, 4]], FPS)
+    dance, rep = stitch(pieces, song, frames, FPS)
+    assert rep["continuous"].all()  # one take, bar after bar
+    shown = _shown(dance)  # the source frame each output frame shows
+    t = (np.arange(frames[0, 0], frames[-1, 1])) / FPS
+    for b in range(n_bars):
+        for j in range(4):
+            got = np.interp(song[b, j], t, shown)
+            assert got == pytest.approx(beats_src[4 * b + j + 2], abs=0.05)
+    rate = np.diff(shown)  # source frames per output frame: smooth, no jump at the bar lines
+    assert (rate > 0).all()
+    assert np.abs(np.diff(rate)).max() < 0.1 * np.median(rate)
+
+
+def test_seam_distance_is_zero_for_the_same_frames_and_grows_with_the_offset(takes):
+    take = takes[0]
+    run = take.slice(100, 110)
+    root, rot = run.root_positions[None], run.rotations[None]
+    a, blocks = seam_features(take.skeleton, root, rot, 1.0 / FPS)
+    assert a.shape == (1, 8, sum(blocks)) and len(blocks) == 3
+    # turned and moved on the ground: the same features (each in its own heading frame)
+    turned = run.copy()
+    q = quat.from_y_angle(np.float64(1.0))
+    turned.root_positions = quat.rotate(np.broadcast_to(q, (10, 4)), run.root_positions) + [
+        2.0,
+        0,
+        1.0,
+    ]
+    turned.rotations[:, 0] = quat.multiply(np.broadcast_to(q, (10, 4)), run.rotations[:, 0])
+    b, _ = seam_features(
+        take.skeleton, turned.root_positions[None], turned.rotations[None], 1 / FPS
+    )
+    assert seam_distance(a, b, blocks).max() < 1e-4
+    later = take.slice(104, 114)
+    c, _ = seam_features(take.skeleton, later.root_positions[None], later.rotations[None], 1 / FPS)
+    d = seam_distance(a, c, blocks)[0]
+    assert d.min() > 0.05
+
+
+def test_bad_input_is_rejected(takes, modern_dir: Path):
+    piece = _piece(takes[0], 300.0)
+    song = _song(2)
+    frames = bar_frames(song[:, [0, 4]], FPS)
     with pytest.raises(ValueError):
-        stitch([pool[0], other])
+        stitch([], song, frames, FPS)
     with pytest.raises(ValueError):
-        stitch([pool[0], retime(pool[1], 43, 30.0)])
+        stitch([piece], song, frames, FPS)
+    other = read_bvh(modern_dir / "05_02.bvh", scale=0.056444)
     with pytest.raises(ValueError):
-        stitch([])
+        stitch([piece, (other, piece[1])], song, frames, FPS)

@@ -199,3 +199,23 @@ def test_start_up_loads_every_graph_and_logs_the_broken_ones(
             # the good graph is in memory before the first request; the broken one is named
             assert set(warm.get("/healthz").json()["loaded"]) == {"demo"}
     assert "graph broken cannot be loaded" in caplog.text
+
+
+def test_a_graph_of_an_old_format_asks_for_a_rebuild(
+    store: ObjectStore, tmp_path: Path, analysis: dict
+):
+    """A graph built before format 2 (no node frames around the bar) is refused with a coded
+    problem naming the rebuild, not a crash."""
+    import json
+    import shutil
+
+    copy = ObjectStore(shutil.copytree(store.root, tmp_path / "old"))
+    version = artifact.current_version(copy, "demo")
+    path = copy.path(artifact.graph_key("demo", version)) / "manifest.json"
+    path.write_text(json.dumps(dict(json.loads(path.read_text()), format=1)))
+    with TestClient(create_app(copy)) as old:
+        resp = old.post("/v1/graphs/demo/search", json={"analysis": analysis, "spec": {}})
+    assert resp.headers["content-type"].startswith(PROBLEM)
+    body = resp.json()
+    assert body["code"] == "graph_version"
+    assert "rebuild it: dancegraph dataset build demo" in body["detail"]
