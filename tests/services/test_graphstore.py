@@ -209,7 +209,7 @@ def test_a_graph_of_an_old_format_asks_for_a_rebuild(
     import json
     import shutil
 
-    copy = ObjectStore(shutil.copytree(store.root, tmp_path / "old"))
+    copy = FileStore(shutil.copytree(store.root, tmp_path / "old"))
     version = artifact.current_version(copy, "demo")
     path = copy.path(artifact.graph_key("demo", version)) / "manifest.json"
     path.write_text(json.dumps(dict(json.loads(path.read_text()), format=1)))
