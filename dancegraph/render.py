@@ -345,6 +345,7 @@ def render(
             "tempo_confidence": float(analysis.tempo_confidence),
             "meter": int(analysis.meter),
             "method": analysis.method,
+            "grid_octave": analysis.grid_octave,
             "warnings": list(analysis.warnings),
         },
         "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
@@ -495,7 +496,10 @@ def synthesize(
 ) -> dict:
     """Song → dance files: analysis (unless given) → graph search → :func:`render`.
 
-    ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). A graph
+    ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). The
+    analysis counts the octave of the style tempo range: ``spec.tempo_range``, else the graph's
+    (``MotionGraph.tempo_range``, where its dataset declares one); ``grid_octave`` and a
+    warning say when it does. A graph
     built with learned models gets their music terms from the audio (``add_music_terms``; for
     samples only with ``sr``). ``on_rig``: see :func:`render`. Returns render's dict plus ``analysis`` (the summary) and
     ``search`` (``SearchResult.to_dict()``).
@@ -505,7 +509,8 @@ def synthesize(
     from dancegraph.music.analysis import analyze
 
     if analysis is None:
-        analysis = analyze(audio)
+        rng = spec.tempo_range
+        analysis = analyze(audio, tempo_range=(rng[0], rng[1]) if rng else graph.tempo_range)
     if isinstance(audio, str | Path) or sr is not None:
         analysis = add_music_terms(analysis, graph, audio if sr is None else (audio, sr))
     found = search(graph, analysis, spec)
