@@ -2,10 +2,10 @@
 
 Each stage is idempotent and leaves nothing half-written:
 
-- analyze: cached by the upload's sha256 (and the style tempo range the dataset's graph declares,
-  ``MotionGraph.tempo_range``: the bars then count the octave that fits it) at
-  ``analysis_key`` (the same song is analysed once per range, whoever asked); written atomically
-  by the object store.
+- analyze: cached by the upload's sha256 and the style tempo range (the spec's, else the one
+  the dataset's graph declares: ``style_tempo_range``; the bars count the octave that fits it)
+  at ``analysis_key`` (the same song is analysed once per range, whoever asked); written
+  atomically by the object store.
 - search: adds the graph's learned music terms where it has learned models
   (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
   graph store (``services.graphstore.client``: in-process in the embedded
@@ -108,15 +108,16 @@ def analyze(
 
 
 def style_tempo_range(store: ObjectStore, spec: Spec) -> tuple[float, float] | None:
-    """The style tempo range whose octave the song's bars count: the spec's ``tempo_range``,
-    else the one the dataset's current graph carries (``MotionGraph.tempo_range``); None
-    without either, or without a graph (the search stage names that problem)."""
-    if spec.tempo_range is not None:
-        return (spec.tempo_range[0], spec.tempo_range[1])
+    """The style tempo range whose octave the song's bars count (``render.style_tempo_range``:
+    the spec's, else the one the dataset's current graph carries); without a graph only the
+    spec's (the search stage names the missing graph)."""
+    from dancegraph.render import style_tempo_range as for_graph
+
     try:
-        return load_graph(store, spec.dataset).tempo_range
+        graph = load_graph(store, spec.dataset)
     except DanceGraphError:
-        return None
+        graph = None
+    return for_graph(spec, graph)
 
 
 def with_learned_terms(
