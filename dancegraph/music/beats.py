@@ -291,24 +291,22 @@ def _on_swung_off_beats(phase: float, rel: float) -> bool:
 def mend_swing_off_beats(times: np.ndarray, onset_env: np.ndarray) -> tuple[np.ndarray, float]:
     """Move onto the beat a grid, or the sections of it, that sit on the swung off-beats.
 
-    Swing delays the off-beat eighth (to 0.58-0.67 of the beat): from a beat, the next onset
-    comes *after* the middle of the beat. A tracker can lock onto the swung off-beats (off-beat
-    drums, a syncopated bass); from those, the next onset — the real beat — comes *before* the
-    middle (at 0.33-0.42), a short-long pattern that music does not swing with. So the beat-phase
-    profile of the onset strength (:func:`beat_phase_profile`) is read between 0.3 and 0.7
-    beat: when its peak there comes before ``SWING['max_phase']`` (measured from the grid's own
-    onset) and is a real onset (``SWING['min_rel']`` of the profile's peak), the beats are moved
-    that far later. Straight music (peak at 0.5) and correctly tracked swing (after 0.5) are
-    left alone.
+    Swing delays the off-beat eighth (to 0.58-0.67 of the beat): from a beat, the next onset comes
+    *after* the middle of the beat. A tracker can lock onto the swung off-beats (off-beat drums, a
+    syncopated bass); from those, the next onset — the real beat — comes *before* the middle (at
+    0.33-0.42), a short-long pattern that music does not swing with. So the beat-phase profile of
+    the onset strength (:func:`beat_phase_profile`) is read between 0.3 and 0.7 beat: when its peak
+    there comes before ``SWING['max_phase']`` (measured from the grid's own onset) and is a real
+    onset (``SWING['min_rel']`` of the profile's peak), the beats are moved that far later. Straight
+    music (peak at 0.5) and correctly tracked swing (after 0.5) are left alone.
 
-    A grid that slips (:func:`find_slips`) onto the swung off-beats for some sections only is
-    mended section by section: one whole-grid profile mixes both and moved the right sections
-    too (slow swung songs). A section moves when its own profile says so and the rest of the
-    grid mirrors it — its eighth after ``SWING['min_swung']`` and the two phases adding up to a
-    beat within ``SWING['mirror_tol']`` — so a section of a straight song on the straight
-    off-beats, whose notes happen to come early, stays for :func:`mend_half_beat_slips`.
-    ``times`` (K,) s, ``onset_env`` (T,) at 50 fps. Returns (beat times
-    (K',), the largest shift in beats, 0.0 when nothing moved).
+    A grid that slips (:func:`find_slips`) onto the swung off-beats for some sections only is mended
+    section by section: one whole-grid profile mixes both and moved the right sections too (slow
+    swung songs). A section moves when its own profile says so and the rest of the grid mirrors it —
+    its eighth after ``SWING['min_swung']`` and the two phases adding up to a beat within
+    ``SWING['mirror_tol']`` — so a section of a straight song on the straight off-beats, whose notes
+    happen to come early, stays for :func:`mend_half_beat_slips`. ``times`` (K,) s, ``onset_env``
+    (T,) at 50 fps. Returns (beat times (K',), the largest shift in beats, 0.0 when nothing moved).
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 8:
@@ -348,14 +346,13 @@ def _next_intervals(times: np.ndarray) -> np.ndarray:
 
 def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
     """How much the music sounds between the beats: the onset-strength profile over the beat
-    (:func:`beat_phase_profile`, ``DOUBLE['bins']`` bins, rolled so the grid's own onset peak is
-    at 0) — its peak between 0.19 and 0.81 beat above the profile's floor, as a share of the
-    beat's own onset above the floor. ``onset_env`` (T,) at 50 fps, ``times`` (K,) s.
+    (:func:`beat_phase_profile`, ``DOUBLE['bins']`` bins, rolled so the grid's own onset peak is at
+    0) — its peak between 0.19 and 0.81 beat above the profile's floor, as a share of the beat's own
+    onset above the floor. ``onset_env`` (T,) at 50 fps, ``times`` (K,) s.
 
-    The tactus has a level below it: eighths, sixteenths or swung eighths sound between the
-    beats. A grid whose beats have nothing between them is the fastest pulse of the music,
-    counted twice per beat; the tactus is one level up.
-    """
+    The tactus has a level below it: eighths, sixteenths or swung eighths sound between the beats. A
+    grid whose beats have nothing between them is the fastest pulse of the music, counted twice per
+    beat; the tactus is one level up."""
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 8:
         return 1.0
@@ -368,15 +365,14 @@ def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
 
 
 def dotted_pulse(times: np.ndarray, onset_env: np.ndarray) -> float | None:
-    """The tempo (BPM) of the song's pulse when the beats ``times`` (K,) s lie at 3:2 or 2:3 of
-    it, else None: the onset envelope (T,) at 50 fps repeats far more strongly (by
+    """The tempo (BPM) of the song's pulse when the beats ``times`` (K,) s lie at 3:2 or 2:3 of it,
+    else None: the onset envelope (T,) at 50 fps repeats far more strongly (by
     ``DOTTED['min_ratio']``) at the x2/3 or x3/2 level than at the tracked beat.
 
-    A syncopated bass on the "and"s or off-beat drums can hold the decoder on a dotted pulse
-    (every third eighth), which no bar grouping mends: 3 tracked beats span 2 of the song's, or
-    the reverse. Where the tracked level is right, the onsets repeat most strongly at it. Then
-    the decoder runs again, its tempo range held to that level (``LEVEL_BAND``).
-    """
+    A syncopated bass on the "and"s or off-beat drums can hold the decoder on a dotted pulse (every
+    third eighth), which no bar grouping mends: 3 tracked beats span 2 of the song's, or the
+    reverse. Where the tracked level is right, the onsets repeat most strongly at it. Then the
+    decoder runs again, its tempo range held to that level (``LEVEL_BAND``)."""
     est = estimate_tempo(times, onset_env, FPS)
     dotted = [
         a
@@ -390,14 +386,14 @@ def octave_switch(times: np.ndarray) -> float | None:
     """The slower tempo (BPM) when the beat grid ``times`` (K,) s counts stretches of the song at
     twice the tempo of others, each for at least ``OCTAVE['min_share']`` of its span; else None.
 
-    The decoder may change its tempo octave between sections (a slow song's busier sections
-    counted in eighths, a fast song's drumless intro in half notes), and bars cut to such a
-    grid halve or double their length from one section to the next. Each interval is placed
-    by the running median of 9 intervals: at the fastest level (within 15 % of its 5th
-    percentile), at twice it (within 30 %) or between. A switch jumps, a ritardando glides:
-    the tempos between the two levels last ``OCTAVE['max_between']`` of the span at most, and
-    the median of 4 intervals changes by ``OCTAVE['min_jump']`` from one beat's 4 to the next 4
-    somewhere. Then the decoder runs again at one level (:func:`_decode_at_level`)."""
+    The decoder may change its tempo octave between sections (a slow song's busier sections counted
+    in eighths, a fast song's drumless intro in half notes), and bars cut to such a grid halve or
+    double their length from one section to the next. Each interval is placed by the running median
+    of 9 intervals: at the fastest level (within 15 % of its 5th percentile), at twice it (within 30
+    %) or between. A switch jumps, a ritardando glides: the tempos between the two levels last
+    ``OCTAVE['max_between']`` of the span at most, and the median of 4 intervals changes by
+    ``OCTAVE['min_jump']`` from one beat's 4 to the next 4 somewhere. Then the decoder runs again at
+    one level (:func:`_decode_at_level`)."""
     from scipy.ndimage import median_filter
 
     t = np.asarray(times, dtype=np.float64)
@@ -447,13 +443,12 @@ def _split_cycle(positions: np.ndarray) -> np.ndarray:
 
 def within_sound(times: np.ndarray, onset_env: np.ndarray) -> np.ndarray:
     """(K,) bool: the beats of ``times`` (K,) s that lie where the music sounds — from the first
-    onset to the last (``onset_env`` (T,) at 50 fps at least ``SOUND['min_onset']`` of its median
-    at the beats), with ``SOUND['slack']`` of the median beat interval either side.
+    onset to the last (``onset_env`` (T,) at 50 fps at least ``SOUND['min_onset']`` of its median at
+    the beats), with ``SOUND['slack']`` of the median beat interval either side.
 
     The decoder runs to the end of the audio: after the last note it keeps counting through the
-    ring-out and any silence after it, and a dance cut to those beats would go on after the
-    music has stopped.
-    """
+    ring-out and any silence after it, and a dance cut to those beats would go on after the music
+    has stopped."""
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 2:
         return np.ones(len(t), dtype=bool)
@@ -499,13 +494,12 @@ def mend_off_beat_grid(
 ) -> tuple[np.ndarray, float]:
     """Move onto the beat a grid that sits on the straight off-beats all song long.
 
-    Off-beat drums and a syncopated bass can hold a tracker on the "and"s from start to end,
-    where no slip shows and the other tracker often agrees. The notes do not follow them: an
-    :func:`off_beat_score` of the grid above ``OFF_BEAT['min_score']`` moves every beat half
-    an interval later (the threshold lies between the scores of grids on the beat and of grids
-    on the off-beats). ``times`` (K,) s, ``onset_env`` (T,), ``chroma``
-    (12, T) at 50 fps. Returns (beat times (K,), the score).
-    """
+    Off-beat drums and a syncopated bass can hold a tracker on the "and"s from start to end, where
+    no slip shows and the other tracker often agrees. The notes do not follow them: an
+    :func:`off_beat_score` of the grid above ``OFF_BEAT['min_score']`` moves every beat half an
+    interval later (the threshold lies between the scores of grids on the beat and of grids on the
+    off-beats). ``times`` (K,) s, ``onset_env`` (T,), ``chroma`` (12, T) at 50 fps. Returns (beat
+    times (K,), the score)."""
     t = np.asarray(times, dtype=np.float64)
     score = off_beat_score(t, onset_env, chroma)
     if score <= OFF_BEAT["min_score"]:
@@ -521,22 +515,19 @@ def half_beat_parity(
     chroma: np.ndarray,
     snare_onset: np.ndarray,
 ) -> float:
-    """Which half of a grid at twice the tactus holds the beats: > 0 the even beats (0, 2, ...),
-    < 0 the odd ones.
+    """Which half of a grid at twice the tactus holds the beats: > 0 the even beats (0, 2, ...), < 0
+    the odd ones.
 
-    Four cues, each the even beats against the odd ones, summed with equal weight: where the
-    notes start (minus the even beats' :func:`off_beat_score`: pitched onsets and onset
-    strength), BeatNet's own beat activation (``act[:, 0]``; it fires harder on the beats than
-    on the eighths between them, even where its decoder counted both) and the noise onsets in
-    the snare band (backbeat snares and claps fall on beats; see :func:`_spectral`), these two
-    in z-units, and how clearly each half forms bars
-    (:func:`~dancegraph.music.bargroup.bar_clarity`: downbeat activation, harmony and backbeat
-    mark the bars of the beats, not of the eighths between them). Any one of them can mislead:
-    a syncopated part puts the notes on the eighths between the beats, off-beat hi-hats pull
-    the network there, a song without drums has no snare: together they outvote any one.
-    ``times`` (K,) s; ``act``
-    (T, 2) and the curves at 50 fps.
-    """
+    Four cues, each the even beats against the odd ones, summed with equal weight: where the notes
+    start (minus the even beats' :func:`off_beat_score`: pitched onsets and onset strength),
+    BeatNet's own beat activation (``act[:, 0]``; it fires harder on the beats than on the eighths
+    between them, even where its decoder counted both) and the noise onsets in the snare band
+    (backbeat snares and claps fall on beats; see :func:`_spectral`), these two in z-units, and how
+    clearly each half forms bars (:func:`~dancegraph.music.bargroup.bar_clarity`: downbeat
+    activation, harmony and backbeat mark the bars of the beats, not of the eighths between them).
+    Any one of them can mislead: a syncopated part puts the notes on the eighths between the beats,
+    off-beat hi-hats pull the network there, a song without drums has no snare: together they
+    outvote any one. ``times`` (K,) s; ``act`` (T, 2) and the curves at 50 fps."""
     t = np.asarray(times, dtype=np.float64)
     frames = np.round(t * FPS)
     parity = -off_beat_score(t[0::2], onset_env, chroma)
@@ -555,32 +546,29 @@ def mend_half_beat_slips(
 ) -> tuple[np.ndarray, int]:
     """Put back on the beat the sections a tracker put on the off-beats.
 
-    A tracker can lock onto the off-beats for a section (a syncopated bass without drums) and
-    come back later: the grid slips by half a beat and back at a steady tempo, which the music
-    does not do (slips: :func:`find_slips`, each taken at the centre of its window). The beats
-    on one side of the slips — the side whose notes start more after its beats than the
-    other's (mean ``gain`` (K,), :func:`off_beat_gain`) — are moved by half an interval, section
-    by section, where an independent tracker's beats ``reference`` (s) at the same tempo there
-    or at half of it (median interval ratio within ``SLIP['same_level']`` or
-    ``SLIP['half_level']``: at half the tempo its beats fall on every other beat of one grid,
-    not the other's, an F-measure of 2/3 against 0) agree with the moved beats clearly better
-    (F-measure at 70 ms, by ``SLIP['agree_margin']``) than with the tracked ones, or where the section's mean
-    ``gain`` is above ``SLIP['min_gain']`` and the two sides' mean gains differ by more than
-    ``SLIP['side_margin']`` (the other tracker often follows the same off-beats). A slip bounds
-    the section, so it needs less evidence than a whole grid (:func:`mend_off_beat_grid`). With
-    one slip in the song, the shorter side — an intro or outro of
-    ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
-    gain says the body is the side off the beat (its notes start after its beats: gain above
-    ``SLIP['body_min_gain']``, and clearly more so than the short side's): the body of a song
-    sets its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are
-    where the trackers go astray. Chords comped on the off-beats raise the gain of a body on the
-    beat, so the body gives way only to a clear gain. A body whose notes start on its beats does
-    not give way to an intro whose notes start there even more clearly. Shorter end parts stay
-    (most single slips that near an end are end effects on a correct grid). At the section
-    borders a beat is dropped or
+    A tracker can lock onto the off-beats for a section (a syncopated bass without drums) and come
+    back later: the grid slips by half a beat and back at a steady tempo, which the music does not
+    do (slips: :func:`find_slips`, each taken at the centre of its window). The beats on one side of
+    the slips — the side whose notes start more after its beats than the other's (mean ``gain``
+    (K,), :func:`off_beat_gain`) — are moved by half an interval, section by section, where an
+    independent tracker's beats ``reference`` (s) at the same tempo there or at half of it (median
+    interval ratio within ``SLIP['same_level']`` or ``SLIP['half_level']``: at half the tempo its
+    beats fall on every other beat of one grid, not the other's, an F-measure of 2/3 against 0)
+    agree with the moved beats clearly better (F-measure at 70 ms, by ``SLIP['agree_margin']``) than
+    with the tracked ones, or where the section's mean ``gain`` is above ``SLIP['min_gain']`` and
+    the two sides' mean gains differ by more than ``SLIP['side_margin']`` (the other tracker often
+    follows the same off-beats). A slip bounds the section, so it needs less evidence than a whole
+    grid (:func:`mend_off_beat_grid`). With one slip in the song, the shorter side — an intro or
+    outro of ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless
+    the gain says the body is the side off the beat (its notes start after its beats: gain above
+    ``SLIP['body_min_gain']``, and clearly more so than the short side's): the body of a song sets
+    its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are where the
+    trackers go astray. Chords comped on the off-beats raise the gain of a body on the beat, so the
+    body gives way only to a clear gain. A body whose notes start on its beats does not give way to
+    an intro whose notes start there even more clearly. Shorter end parts stay (most single slips
+    that near an end are end effects on a correct grid). At the section borders a beat is dropped or
     inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
-    Returns (beat times (K',), number of beats moved).
-    """
+    Returns (beat times (K',), number of beats moved)."""
     t = np.asarray(times, dtype=np.float64)
     centres, _ = find_slips(t)
     offset = np.zeros(len(t))  # 0 or 0.5 beat against the first beat's pulse
@@ -629,17 +617,14 @@ def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where a beat grid slips by a fraction of a beat at a steady tempo.
 
     Slips are found in the grid's phase drift against the running interquartile mean interval
-    (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over
-    ``2 * SLIP['window']`` beats with the same tempo before and after. The decoder's beats lie
-    on 20 ms frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their
-    median (17) is 2.5 % short and the drift against it grows by a quarter beat every ten beats:
-    false slips in a steady grid. The interquartile mean keeps the fraction and still ignores
-    the slip's own odd intervals.
-    ``times`` (K,) s.
-    Returns (centres, splits), int arrays (S,): per slip the beat at the centre of the window
-    it was measured over, and the beat after the window's most irregular interval (where the
-    grid jumped: the first beat of the new section).
-    """
+    (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over ``2 *
+    SLIP['window']`` beats with the same tempo before and after. The decoder's beats lie on 20 ms
+    frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their median (17)
+    is 2.5 % short and the drift against it grows by a quarter beat every ten beats: false slips in
+    a steady grid. The interquartile mean keeps the fraction and still ignores the slip's own odd
+    intervals. ``times`` (K,) s. Returns (centres, splits), int arrays (S,): per slip the beat at
+    the centre of the window it was measured over, and the beat after the window's most irregular
+    interval (where the grid jumped: the first beat of the new section)."""
     t = np.asarray(times, dtype=np.float64)
     w = SLIP["window"]
     centres: list[int] = []
@@ -796,12 +781,12 @@ def _librosa_beats(spec: _Spectral) -> tuple[np.ndarray, np.ndarray, int]:
 def _decode_at_level(
     ev: Evidence, params: BeatParams, bpm: float
 ) -> barpointer.DecodedBeats | None:
-    """The bar-pointer decode of ``ev.act`` with its tempo held within ``LEVEL_BAND`` of ``bpm``
-    or of twice it (when that fits under the decoder's ``max_bpm``), whichever path is likelier,
-    or None when it fails the no-beat test (:func:`_usable`; ``ev.values`` is not touched): a
-    dotted pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other beat
-    (the likelier path tells which), and of the two octaves a grid switched between (:func:`octave_switch`)
-    one is kept for the whole song."""
+    """The bar-pointer decode of ``ev.act`` with its tempo held within ``LEVEL_BAND`` of ``bpm`` or
+    of twice it (when that fits under the decoder's ``max_bpm``), whichever path is likelier, or
+    None when it fails the no-beat test (:func:`_usable`; ``ev.values`` is not touched): a dotted
+    pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other beat (the
+    likelier path tells which), and of the two octaves a grid switched between
+    (:func:`octave_switch`) one is kept for the whole song."""
     act = ev.act
     assert act is not None  # the re-decode steps run only on a BeatNet grid
     band = 1.0 + LEVEL_BAND
@@ -1137,9 +1122,9 @@ DEFAULT_STEPS = frozenset({"dotted_pulse", "halve", "slips", "group", "within_so
 @dataclass(frozen=True)
 class BeatParams:
     """The parameters of :func:`track_beats`: ``models`` the BeatNet models whose activations are
-    averaged (an ensemble: fewer of one model's mistakes), ``decoder`` the bar-pointer decoder's parameters
-    (``barpointer.MADMOM`` reproduces BeatNet), ``steps`` the names of :data:`STEPS` that run
-    (in :data:`STEPS` order, whatever the order here)."""
+    averaged (an ensemble: fewer of one model's mistakes), ``decoder`` the bar-pointer decoder's
+    parameters (``barpointer.MADMOM`` reproduces BeatNet), ``steps`` the names of :data:`STEPS` that
+    run (in :data:`STEPS` order, whatever the order here)."""
 
     models: tuple[int, ...] = DEFAULT_MODELS
     decoder: barpointer.BarPointerParams = barpointer.DEFAULT
