@@ -31,7 +31,7 @@ from dancegraph.motion.dataset import Dataset, import_dataset, load_dataset, loa
 from dancegraph.motion.demo import write_demo_library
 from dancegraph.motion.tempo import nearest_distance, partner_agreement
 from dancegraph.paths import REPO_ROOT, shared_dir
-from dancegraph.store import ObjectStore
+from dancegraph.store import FileStore, ObjectStore
 
 TARGET_S = 60.0
 MANIFESTS = REPO_ROOT / "datasets" / "manifests"
@@ -194,7 +194,7 @@ def demo(store: ObjectStore, tmp: Path) -> None:
 def main() -> int:
     mocap = shared_dir() / "datasets" / "mocap"
     with tempfile.TemporaryDirectory(prefix="bench-grid-") as tmp:
-        store = ObjectStore(Path(tmp) / "store")
+        store = FileStore(Path(tmp) / "store")
         demo(store, Path(tmp))
         if not mocap.is_dir():
             print(f"shared mocap not found at {mocap}; set DANCEGRAPH_SHARED")
