@@ -62,6 +62,7 @@ from dancegraph.motion.stitch import (
     seam_distance,
     seam_features,
 )
+from dancegraph.rhythm.motion import motion_stops
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits, to_pattern
 from dancegraph.store import ObjectStore
 
@@ -92,7 +93,7 @@ class BuildParams:
     n_motifs: int | None = None
     seed: int = 0
     chunk: int = 512
-    accent_anchors: bool = True  # anchor node beats on the take's kinematic beats (accent_anchors)
+    accent_anchors: bool = True  # move node beats onto the take's stops (accent_anchors)
     accent_tolerance: float = 0.25  # beats: how far from a grid beat an accent may anchor it
     accent_max_speed: float = 1.5  # bound on a beat interval's stretch or squeeze by the anchors
 
@@ -196,15 +197,16 @@ def accent_anchors(
     """A take's bar beats moved onto its own motion accents: ``(n, 5)`` s, like ``bar_beats``.
 
     ``bar_beats (n, 5)``: the take's bars' beat times (s, its beat grid); ``accents (K,)``: the
-    take's kinematic beats (s). Each distinct grid beat (a beat shared by two adjoining bars
-    counts once, so both bars keep sharing it) with an accent within ``tolerance`` of its bar's
-    beat length moves onto that accent; the beats between moved ones shift by the linear
-    interpolation of their shifts (constant beyond the first and last). Where a beat interval of
-    a bar would be stretched or squeezed by more than ``max_speed`` (ratio to the grid's), the
-    end of it that moved further moves back until the interval is at the bound (or, where an
-    end is not anchored, the nearest anchor is dropped), until no interval is. The renderer maps a
-    node's beats onto the song's (``retime.node_warp``), so the accents land on the song's beats:
-    a steady grid alone leaves them at any phase of the beat.
+    take's motion beats (s; the build gives ``rhythm.motion.motion_stops``). Each distinct grid
+    beat (a beat shared by two adjoining bars counts once, so both keep sharing it) with an
+    accent within ``tolerance`` of its bar's beat length moves onto that accent; the beats
+    between moved ones shift by the linear interpolation of their shifts (constant beyond the
+    first and last). Where a beat interval of a bar would be stretched or squeezed by more than
+    ``max_speed`` (ratio to the grid's interval), the end of it that moved further moves back
+    until the interval is at the bound (where an end is not anchored, the anchor that moved
+    further is dropped), until no interval is. Why: the renderer maps a node's beats onto the
+    song's (``retime.node_warp``), so the accents land on the song's beats; a steady grid
+    leaves them at any phase of the beat.
     """
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     acc = np.sort(np.asarray(accents, dtype=float).reshape(-1))
@@ -967,8 +969,8 @@ def bars_from_dataset(
     dataset, progress: Progress | None = None, params: BuildParams | None = None
 ) -> BarSet:
     """Every bar of an imported ``Dataset`` with the frames of its take around it (``BarSet``);
-    with ``params.accent_anchors`` (the default) each take's beats moved onto its kinematic beats
-    (``accent_anchors``)."""
+    with ``params.accent_anchors`` (the default) each take's beats moved onto the moments it stops
+    (``accent_anchors`` on ``rhythm.motion.motion_stops``)."""
     params = params or BuildParams()
     clips = [c.id for c in dataset.clips]
     by_clip: dict[str, list] = {}
@@ -977,17 +979,18 @@ def bars_from_dataset(
     takes = []
     for k, cid in enumerate(clips):
         bl = sorted(by_clip.get(cid, []), key=lambda b: b.index)
+        motion = dataset.motion(cid)
         bar_beats = np.array([b.beat_times for b in bl], dtype=float).reshape(-1, 5)
-        if params.accent_anchors:
+        if params.accent_anchors and len(bl):
             bar_beats = accent_anchors(
                 bar_beats,
-                dataset.kinematic_beats(cid),
+                motion_stops(motion),
                 params.accent_tolerance,
                 params.accent_max_speed,
             )
         takes.append(
             (
-                dataset.motion(cid),
+                motion,
                 bar_beats,
                 np.array([b.index for b in bl], dtype=np.int64),
                 [b.signature_raw or b.signature for b in bl],

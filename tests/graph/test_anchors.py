@@ -18,6 +18,7 @@ from dancegraph.motion.features import kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import Warp, sample
 from dancegraph.render import render_path
+from dancegraph.rhythm.motion import motion_stops
 
 ON_EVERY_BEAT = "01010101"  # slots 0, 2, 4, 6: a pause on each beat
 
@@ -85,8 +86,8 @@ def test_anchor_params_are_checked(bad):
 def _graph(takes, anchors: bool):
     rows = []
     for motion, bars, _ in takes:
-        if anchors:
-            bars = accent_anchors(bars, _pauses(motion))
+        if anchors:  # as bars_from_dataset does
+            bars = accent_anchors(bars, motion_stops(motion))
         frames = np.round(bars[:, [0, 4]] * motion.fps).astype(np.int64)
         rows.append((motion, bars, np.arange(len(bars)), [ON_EVERY_BEAT] * len(bars), frames))
     clips = [f"t{k}" for k in range(len(takes))]
@@ -100,7 +101,8 @@ def _graph(takes, anchors: bool):
 
 def test_rendered_pauses_land_on_the_song_beats():
     """Every bar of the takes danced in turn on a song at another tempo with uneven beats: with
-    anchors the dance's pauses gather on the song's beats (R >= 0.8), without them they do not."""
+    anchors (on the takes' Shiratori stops) the dance's kinematic beats (minima of mean joint
+    speed) gather on the song's beats (R >= 0.8), without them they do not."""
     takes = [_off_grid_take(seed, tempo, 0.2) for seed, tempo in ((2, 104.0), (3, 118.0))]
     rng = np.random.default_rng(7)
     song_beats = np.cumsum(np.r_[1.0, 0.5 + rng.uniform(-0.03, 0.03, 48)])
