@@ -94,7 +94,7 @@ class BuildParams:
     seed: int = 0
     chunk: int = 512
     accent_anchors: bool = True  # move node beats onto the take's stops (accent_anchors)
-    accent_tolerance: float = 0.25  # beats: how far from a grid beat an accent may anchor it
+    accent_tolerance: float = 0.45  # beats: how far from a grid beat an accent may anchor it
     accent_max_speed: float = 1.5  # bound on a beat interval's stretch or squeeze by the anchors
 
     def __post_init__(self) -> None:
@@ -192,7 +192,7 @@ class BarSet:
 
 
 def accent_anchors(
-    bar_beats: np.ndarray, accents: np.ndarray, tolerance: float = 0.25, max_speed: float = 1.5
+    bar_beats: np.ndarray, accents: np.ndarray, tolerance: float = 0.45, max_speed: float = 1.5
 ) -> np.ndarray:
     """A take's bar beats moved onto its own motion accents: ``(n, 5)`` s, like ``bar_beats``.
 
