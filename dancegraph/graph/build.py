@@ -93,7 +93,7 @@ class BuildParams:
     n_motifs: int | None = None
     seed: int = 0
     chunk: int = 512
-    accent_anchors: bool = True  # move node beats onto the take's stops (accent_anchors)
+    accent_anchors: bool = True  # move motion-read grids' beats onto the take's stops
     accent_tolerance: float = 0.45  # beats: how far from a grid beat an accent may anchor it
     accent_max_speed: float = 1.5  # bound on a beat interval's stretch or squeeze by the anchors
 
@@ -969,19 +969,22 @@ def bars_from_dataset(
     dataset, progress: Progress | None = None, params: BuildParams | None = None
 ) -> BarSet:
     """Every bar of an imported ``Dataset`` with the frames of its take around it (``BarSet``);
-    with ``params.accent_anchors`` (the default) each take's beats moved onto the moments it stops
-    (``accent_anchors`` on ``rhythm.motion.motion_stops``)."""
+    with ``params.accent_anchors`` (the default) the beats of each take whose grid was read from
+    its motion (``beat_source`` not ``annotation``) moved onto the moments it stops
+    (``accent_anchors`` on ``rhythm.motion.motion_stops``); an annotated grid is where the take's
+    music had its beats, and the take's own relation to them is kept."""
     params = params or BuildParams()
     clips = [c.id for c in dataset.clips]
     by_clip: dict[str, list] = {}
     for b in dataset.bars:
         by_clip.setdefault(b.clip_id, []).append(b)
+    read_from_motion = {c.id: c.beat_source != "annotation" for c in dataset.clips}
     takes = []
     for k, cid in enumerate(clips):
         bl = sorted(by_clip.get(cid, []), key=lambda b: b.index)
         motion = dataset.motion(cid)
         bar_beats = np.array([b.beat_times for b in bl], dtype=float).reshape(-1, 5)
-        if params.accent_anchors and len(bl):
+        if params.accent_anchors and read_from_motion[cid] and len(bl):
             bar_beats = accent_anchors(
                 bar_beats,
                 motion_stops(motion),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dancegraph.graph.artifact import graph_from_arrays
-from dancegraph.graph.build import BarSet, BuildParams, accent_anchors, build_arrays
+from dancegraph.graph.build import BarSet, BuildParams, accent_anchors, build_arrays, take_bars
 from dancegraph.metrics.beats import phase_concentration
 from dancegraph.motion.demo import DemoClip, make_clip
 from dancegraph.motion.features import kinematic_beats
@@ -117,3 +117,43 @@ def test_rendered_pauses_land_on_the_song_beats():
         r[anchors] = phase_concentration(song_beats[:49], found)[0]
     assert r[True] >= 0.8
     assert r[False] < 0.5
+
+
+def test_build_anchors_motion_read_grids_only(tmp_path):
+    """``bars_from_dataset``: the demo library's annotated grids stay as annotated; gridded from
+    its motion instead (annotations removed), beats move, each moved one onto a stop."""
+    import json
+
+    from dancegraph.graph.build import bars_from_dataset
+    from dancegraph.motion.dataset import import_dataset, load_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.store import FileStore
+
+    lib = write_demo_library(tmp_path / "lib")
+    annotated = json.loads((lib / "manifest.json").read_text())
+    from_motion = json.loads(json.dumps(annotated))
+    for clip in from_motion["clips"].values():
+        del clip["bars"], clip["signatures"]
+    store = FileStore(tmp_path / "store")
+    for name, manifest in (("annotated", annotated), ("from_motion", from_motion)):
+        import_dataset(lib, name, store, manifest)
+    on, off = BuildParams(), BuildParams(accent_anchors=False)
+
+    ds = load_dataset(store, "annotated")
+    assert {c.beat_source for c in ds.clips} == {"annotation"}
+    assert np.array_equal(
+        bars_from_dataset(ds, params=on).beats, bars_from_dataset(ds, params=off).beats
+    )
+
+    ds = load_dataset(store, "from_motion")
+    assert "annotation" not in {c.beat_source for c in ds.clips}
+    moved, kept = bars_from_dataset(ds, params=on), bars_from_dataset(ds, params=off)
+    assert not np.allclose(moved.beats, kept.beats)
+    by_clip = {}
+    for b in ds.bars:
+        by_clip.setdefault(b.clip_id, []).append(b)
+    for c, clip in enumerate(moved.clips):
+        grid = np.array([b.beat_times for b in sorted(by_clip[clip], key=lambda b: b.index)])
+        motion = ds.motion(clip)
+        want, _ = take_bars(motion, accent_anchors(grid, motion_stops(motion)))
+        assert np.allclose(moved.beats[moved.clip == c], want)
