@@ -4,8 +4,9 @@
 the monotone cubic of Fritsch and Carlson (PCHIP) between the anchors and straight lines
 with the end slopes beyond them. A rendered bar maps song time to the source frames of its node
 through two of them (``song_phase`` and ``node_warp``), so every beat of the node lands on the
-song's beat of the same number, the dance speeds up and slows down with uneven beats, and the
-warp stays defined past the bar's ends, where the seam's cut may fall (docs/rendering.md).
+song's beat of the same number, the dance speeds up and slows down with uneven beats (turning
+from one beat's rate to the next on the beat, ``TURN_BEATS``), and the warp stays defined past
+the bar's ends, where the seam's cut may fall (docs/rendering.md).
 """
 
 from __future__ import annotations
@@ -101,9 +102,9 @@ def _strictly_increasing(v: np.ndarray) -> np.ndarray:
 def song_phase(bar_beats: np.ndarray) -> Warp:
     """Song time (s) → beat phase: beat j of bar b (``bar_beats (B, 5)`` s) at phase ``4b + j``.
 
-    The anchors are every bar's beats 0-3 and the last bar's closing downbeat, so a gap between
-    two bars (a downbeat correction) is danced by the earlier bar, as ``render.bar_frames`` gives
-    its frames to it.
+    The anchors are every bar's beats 0-3 and the last bar's closing downbeat (with their turns,
+    ``_turns``), so a gap between two bars (a downbeat correction) is danced by the earlier bar,
+    as ``render.bar_frames`` gives its frames to it.
     """
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     if len(bb) == 0:
@@ -115,7 +116,7 @@ def song_phase(bar_beats: np.ndarray) -> Warp:
 
 def node_warp(beats: np.ndarray) -> Warp:
     """Bar phase (beats, 0 = downbeat) → frame of a node's stored motion; ``beats (9,)``: the
-    frames (fractional) of its beats -2 .. 6 (``NODE_BEATS``)."""
+    frames (fractional) of its beats -2 .. 6 (``NODE_BEATS``), with their turns (``_turns``)."""
     return Warp(*_turns(NODE_BEATS.astype(float), np.asarray(beats, dtype=float)))
 
 
