@@ -345,6 +345,7 @@ def render(
             "tempo_confidence": float(analysis.tempo_confidence),
             "meter": int(analysis.meter),
             "method": analysis.method,
+            "grid_octave": analysis.grid_octave,
             "warnings": list(analysis.warnings),
         },
         "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
@@ -482,6 +483,16 @@ def _audio_provenance(path: Path) -> dict:
     return {"file": path.name, "sha256": file_sha256(path)}
 
 
+def style_tempo_range(spec: Spec, graph: MotionGraph | None) -> tuple[float, float] | None:
+    """The dance style's tempo range (lo, hi) BPM a song is analysed in for ``spec`` on
+    ``graph`` (its bars then count the octave that fits it, ``music.analysis.analyze``): the
+    spec's ``tempo_range``, else the one the graph's dataset declares
+    (``MotionGraph.tempo_range``), else None (no graph, or neither declares one)."""
+    if spec.tempo_range is not None:
+        return (spec.tempo_range[0], spec.tempo_range[1])
+    return graph.tempo_range if graph is not None else None
+
+
 def synthesize(
     audio,
     graph: MotionGraph,
@@ -495,7 +506,9 @@ def synthesize(
 ) -> dict:
     """Song → dance files: analysis (unless given) → graph search → :func:`render`.
 
-    ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). A graph
+    ``audio``: a path or mono ``(N,)`` samples at ``sr`` Hz (then pass ``analysis``). The
+    analysis counts the octave of the style's tempo range (:func:`style_tempo_range`);
+    ``grid_octave`` and a warning say when that is not the tracked one. A graph
     built with learned models gets their music terms from the audio (``add_music_terms``; for
     samples only with ``sr``). ``on_rig``: see :func:`render`. Returns render's dict plus ``analysis`` (the summary) and
     ``search`` (``SearchResult.to_dict()``).
@@ -505,7 +518,7 @@ def synthesize(
     from dancegraph.music.analysis import analyze
 
     if analysis is None:
-        analysis = analyze(audio)
+        analysis = analyze(audio, tempo_range=style_tempo_range(spec, graph))
     if isinstance(audio, str | Path) or sr is not None:
         analysis = add_music_terms(analysis, graph, audio if sr is None else (audio, sr))
     found = search(graph, analysis, spec)

@@ -63,6 +63,10 @@ class StructureRules(_Strict):
 
 BarRange = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
 SecondRange = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]
+#: a tempo range [lo, hi] BPM; 20-400 spans every danced tempo and the tracker's octaves of it
+BpmRange = Annotated[
+    list[Annotated[float, Field(ge=20, le=400)]], Field(min_length=2, max_length=2)
+]
 
 
 class _Ranged(_Strict):
@@ -196,10 +200,24 @@ class Spec(_Strict):
         max_length=MAX_ID_CHARS,
         description="take id whose motif sequence to re-create on this music",
     )
+    tempo_range: BpmRange | None = Field(
+        None,
+        description="the dance style's tempo range [lo, hi] in BPM of the counted beat: a song "
+        "tracked at half or twice a tempo inside it gets its beats and bars counted at that "
+        "tempo (analysis grid_octave x2 or x1/2, with a warning). Default: the range the "
+        "dataset declares (its manifest's tempo_prior_bpm), else the tracked tempo",
+    )
     output: Output = Field(default_factory=Output)
     callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(
         None, description="POSTed when the job ends; must name a public address"
     )
+
+    @field_validator("tempo_range")
+    @classmethod
+    def _tempo_range_ordered(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and value[0] >= value[1]:
+            raise ValueError("tempo_range must be [lo, hi] BPM with lo < hi")
+        return value
 
     @model_validator(mode="after")
     def _waypoints_on_stage(self):

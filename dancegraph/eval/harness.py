@@ -597,12 +597,15 @@ def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
 
 def load_song(path: str | Path, analysis=None, graph: MotionGraph | None = None) -> Song:
     """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats; with
-    ``graph``, add its learned models' music terms (``embed.learned.add_music_terms``)."""
+    ``graph``, count the octave of its style tempo range (``MotionGraph.tempo_range``) as
+    ``synthesize`` does, and add its learned models' music terms
+    (``embed.learned.add_music_terms``)."""
     from dancegraph.embed.learned import add_music_terms
     from dancegraph.music.analysis import analyze
     from dancegraph.music.decode import load_audio
 
-    analysis = analysis if analysis is not None else analyze(path)
+    if analysis is None:
+        analysis = analyze(path, tempo_range=graph.tempo_range if graph is not None else None)
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)

@@ -31,7 +31,9 @@ do not pass silently::
     fps_reason: "..."                # ... and say why (kept in the dataset)
     scale: 1.0                       # file units → metres (CMU ASF units: 0.056444)
     style: salsa                     # style label of every clip
-    tempo_prior_bpm: [150, 220]      # plausible tempo range for the kinematic estimate
+    tempo_prior_bpm: [150, 220]      # the style's tempo range (BPM of the counted beat): the
+                                     # kinematic estimate's prior, and carried into the graph:
+                                     # a song's bars count the octave that fits it
     tempo_bpm: 120                   # fixed tempo: bars from it instead of an estimate
     first_downbeat_s: 0.0            # with tempo_bpm: where the first bar starts (default:
                                      # on the kinematic beats, or 0 without a steady beat)

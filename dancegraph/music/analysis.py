@@ -157,7 +157,8 @@ class MusicAnalysis:
         )
 
     def summary(self) -> dict:
-        """A short dict for job status: tempo, meter, counts, the phrase form (e.g. ``ABAB``)."""
+        """A short dict for job status: tempo, meter, counts, the phrase form (e.g. ``ABAB``), the
+        grid octave and the warnings."""
         return {
             "duration_s": round(float(self.duration_s), 2),
             "tempo_bpm": round(float(self.tempo_bpm), 1),
@@ -168,6 +169,7 @@ class MusicAnalysis:
             "n_phrases": len(self.phrases),
             "form": "".join(p["label"] for p in self.phrases),
             "method": self.method,
+            "grid_octave": self.grid_octave,
             "warnings": list(self.warnings),
         }
 

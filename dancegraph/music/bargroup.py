@@ -42,68 +42,10 @@ tracked beats (K beats, 50 fps frame indices) with two kinds of evidence:
   is kept. For a dance product 2/4 and 4/4 differ only in notation: the dance bar is 4 beats
   (two 2/4 measures, see :func:`dancegraph.music.analysis.four_beat_bars`), and what matters is
   which measure starts it. So 2/4 music is reported as 4 when the pairing is heard and as 2
-  only when the two measures are alike (then the bars pair from the first downbeat). The CC
-  2/4 pieces, Hungarian Dance 5 and the Sugar Plum Fairy, both come out as 4.
+  only when the two measures are alike (then the bars pair from the first downbeat).
 
-Measured with ``bench/bench_music.py --songs 12 --hard 12`` (generated songs, exact truth),
-with the half-beat slip mending of :mod:`dancegraph.music.beats`: hard songs downbeat F 0.743
--> 0.854, meter 92 % -> 100 %; the normal songs unchanged (0.981, 100 %). Then the cheap
-restarts at grid glitches, the swing mend of :mod:`dancegraph.music.beats` and leaving the
-network's downbeat activation out at moved beats: 24 hard songs (seeds 2000-2023) 0.810 ->
-0.832; held-out hard seeds 3000-3015 0.868 -> 0.928; 29 swung hard songs (seeds 5000-5029,
-swing forced) 0.839 -> 0.925; normal songs unchanged (seeds 1000-1011 0.981, held-out
-4000-4011 0.904).
-
-Then (2026-11-30) chroma above the bass for the harmonic change, :data:`HARMONY_WEIGHT` 1.5,
-:data:`METER_MARGIN` 0.15, and in :mod:`dancegraph.music.beats` the halving of grids at twice
-the tactus and the off-beat mends led by where the notes start (``off_beat_gain``). Downbeat F
-before -> after on four seed sets (``--seed-base``; 154 hard and 120 normal songs): hard
-2000-2023 0.832 -> 0.864, 3000-3029 0.787 -> 0.886, 6000-6059 0.670 -> 0.855, 8000-8039
-(fresh, after only) 0.828; all 154 hard songs 0.855; normal 1000-1029 0.971 -> 0.982,
-4000-4029 0.920 -> 0.943, 7000-7039 0.950 -> 0.965, 9000-9019 0.977; meter 95-97 % -> 100 %
-on every set. What is left: sections on the off-beats whose notes do not clearly start after
-the beats, the downbeat under an anticipated bass root or an off-beat kick where the chords
-change on two beats of the bar alike, a halved grid whose bars start on the wrong beat, and
-160-180 BPM songs tracked at half their tempo (no cue in the onsets found that would not also
-double 80-95 BPM songs with sixteenths; the bars tell instead: a 4-beat "bar" holding two bars
-of the song is marked in its middle almost as at its start — :func:`half_bar_contrast`, the
-duple test's statistic — and :mod:`dancegraph.music.beats` splits such grids, ``beats_split``;
-3/4 songs at half tempo come in 3-beat bars holding two bars of 3, found by
-:func:`lag_distance` and :func:`fold_contrast` on the split grid).
-
-Then the backbeat term (2026-11-30), downbeat F on generated songs: hard 0.876 -> 0.893 (410
-songs of the seed sets above) and 0.873 -> 0.906 (70 drawn 2026-11-30), 3/4 hard 0.759 -> 0.784
-(40), normal 0.977 -> 0.977 (310) and 0.962 -> 0.955 (60: 24014, a 70 BPM song already wrongly
-split, 0.62 -> 0.07; 26015 0.83 -> 0.95); checked after on fresh seeds: hard 30000-30039
-0.799 -> 0.843, hard 150-180 BPM 32000-32029 0.887 -> 0.896, normal 31000-31029 0.953
-unchanged. Weight 0.5 / 0.75 / 1.0 / 1.5: hard 0.889 / 0.893 / 0.893 / 0.887; at 1.0 the first
-7 bars of the CC jazz track Vibe Ace moved by a beat (then a 3-beat bar), at 0.75 and below
-its bars are unchanged; Hungarian Dance 5 and the Sugar Plum Fairy (2/4) pair their measures
-differently in places (2-beat shifts; the pairing has no right answer in the notation, and the
-new one has no 2- or 6-beat bar where the old one had two and one). The half-tempo test of
-:mod:`dancegraph.music.beats` (:func:`half_bar_contrast`) keeps the evidence without the
-backbeat: its threshold was measured so (with it, at 1.0, two right splits were lost and a
-wrong one made).
-
-Then (2026-11-30, night) the meter test compares the chroma only across bar lines
-(:func:`meter_distances`) and overrides the network toward 4 with :data:`METER_MARGIN_TO_4`:
-meter errors on 1310 generated songs 5 -> 3 (a normal 4/4 song with a chord per bar and a hard
-4/4 song counted in 3 now right; left: a 4/4 song whose swing-mended grid repeats at 3 beats,
-two tracked at 4:5 and 3:2 of their tempo); no other song moves.
-
-Then (2026-12-01) the downbeat evidence's own bars weigh in on the meter
-(:data:`CLARITY_MARGIN`): how much more clearly it forms bars of 4 than of 3 (the mean evidence
-at the downbeats less that at the other beats, each meter's best phase path). Self-similarity
-measures whether the music repeats at the bar length; a swung or syncopated rhythm can repeat at
-3 beats inside 4/4 bars, and a fast 4/4 song the network counts in 3 may lean to 4 by less than
-the margin. On 1830 generated songs the 3 meter errors left (hard 30017, 44030, 49028) were
-1.45-2.15 clearer in 4, every waltz at most 0.43 (0.16 where self-similarity regrouped it into
-3): all 3 now in 4 (downbeat F 0.24-0.28 -> 0.82, 1.00, 0.39), no other song moves; none of 210
-songs drawn before the rule was tried on them moves either (their one meter error, hard 54035,
-a 155 BPM waltz tracked at 2:3 of its tempo, is a tempo-level error no bar grouping mends).
-
-``metricon`` 0.1.0 (MIT) decoding the same activations gets the hard downbeats no better than
-our own decoder (F 0.48 on 24 hard songs): it was not adopted.
+The measurements behind each part and its constants, on real recordings and generated songs:
+docs/music.md ("Measurements behind the steps").
 """
 
 from __future__ import annotations
@@ -130,21 +72,17 @@ __all__ = [
 ]
 
 #: mean lag-distance difference (feature units) by which 3 or 4 must win to override the network
-#: (generated songs: right overrides won by 0.23-0.59; at 0.05 a 4/4 song went to 3 by 0.11)
+#: (between the margins of right and wrong overrides on generated songs)
 METER_MARGIN = 0.15
-#: the same for a halved grid (no network prior; 3 must win against 4 by this): generated songs
-#: halved from twice their tempo, 3/4 by 0.13 and 0.22, 4/4 within 0.04 or for 4
+#: the same for a halved grid (no network prior; 3 must win against 4 by this)
 HALVED_METER_MARGIN = 0.075
 #: the margin by which 4 must win where the network counted 3: 4/4 is the commoner meter, so
-#: less evidence overrides toward it (generated songs: none of 258 waltzes the network counted
-#: in 3 leans to 4 at all, by -0.07 at most; a 4/4 song it counted in 3 leans to 4 by 0.14)
+#: less evidence overrides toward it
 METER_MARGIN_TO_4 = 0.075
 #: how much more clearly the downbeat evidence must form bars of 4 than bars of 3 (mean evidence
 #: at the downbeats less that at the other beats, z-units) to outweigh the bar-length
 #: self-similarity: the meter goes from the network's 3 to 4 when the self-similarity leans to 4
-#: at all and the evidence is this much clearer in 4, and not from 4 to 3 when it is (generated
-#: songs: 4/4 songs counted in 3 or regrouped into 3 by self-similarity alone 1.45-2.82 clearer
-#: in 4; waltzes 0.43 at most, 0.16 at most where self-similarity regroups them into 3)
+#: at all and the evidence is this much clearer in 4, and not from 4 to 3 when it is
 CLARITY_MARGIN = 1.0
 #: weight of the harmonic change against the network's downbeat logit (both z-scored): the
 #: network follows kicks and bass accents, which the hard cases put off the downbeat
@@ -254,8 +192,7 @@ def meter_distances(x: np.ndarray) -> dict[int, float]:
     The chroma counts at the two-bar lags only. With a chord per bar, beats one lag apart share
     the chord more often the shorter the lag (lag 3 in 4/4: a quarter of the pairs in one bar;
     lag 4: none), so at one bar the chroma of 4/4 music favours 3; at 6 and 8 beats every pair
-    crosses a bar line in either meter (a 4/4 song regrouped into 3 on its chords alone:
-    generated seed 34024)."""
+    crosses a bar line in either meter."""
     rhythm = x[:, :-12]
     return {
         3: (lag_distance(rhythm, 3) + lag_distance(x, 6)) / 2,

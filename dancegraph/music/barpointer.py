@@ -14,8 +14,8 @@ all meters share one state space, and at any beat boundary the bar may restart â
 downbeat of the same meter with probability ``phase_change`` (a 2-beat bar, a dropped beat
 between sections), or to another meter's downbeat with ``meter_change``. :data:`DEFAULT` allows
 phase changes at 1e-20 per beat (about 46 nats: several bars of consistent contrary evidence are
-needed; at 1e-9 the network's own mistakes over a section were followed, downbeat F on the
-generated set 0.88 -> 0.85) and keeps one meter per song.
+needed, so the network's own mistakes over a section are not followed) and keeps one meter per
+song.
 
 Memory: the back-pointers are kept only for the first state of each beat (all others have a single
 predecessor), (T, meters x beats x tempi) int16 â€” 33 MB for a 15-minute song at 50 fps.

@@ -94,7 +94,7 @@ __all__ = [
 SR = 22_050
 HOP = 441
 DEFAULT_MODELS = (1, 2, 3)
-TARGET_LEVEL = 0.1  # loud-part RMS (-20 dBFS) quiet input is raised to; CC songs: 0.105-0.18
+TARGET_LEVEL = 0.1  # loud-part RMS (-20 dBFS) quiet input is raised to: a mastered song's level
 MAX_GAIN = 1000.0  # at most +60 dB
 FPS = SR / HOP
 #: the confidence of a faint pulse (``weak_pulse``) is scaled by this: beats, but not sure ones
@@ -204,9 +204,8 @@ SLIP: dict[str, Any] = {
     "edge_beats": 12,  # one slip: an intro/outro of this many beats or more ...
     "edge_share": 0.25,  # ... and at most this share of the beats moves (the body sets the pulse)
     # a slip is a slide or a jump, not jitter: 4 of its window's intervals hold this share of
-    # its phase change, or one interval is this far off the running one (a steady grid on 20 ms
-    # frames at 138 BPM jitters by up to 8 % and drifts a third of a beat over 8 beats, spread
-    # evenly: 0.6 of it in 4 intervals; the decoder slides in 4-5 beats, 0.8-1.2)
+    # its phase change, or one interval is this far off the running one (a steady grid's frame
+    # jitter spreads its drift evenly over the window; a decoder's slide concentrates it)
     "min_concentration": 0.75,
     "min_jump": 0.11,
 }
@@ -292,26 +291,22 @@ def _on_swung_off_beats(phase: float, rel: float) -> bool:
 def mend_swing_off_beats(times: np.ndarray, onset_env: np.ndarray) -> tuple[np.ndarray, float]:
     """Move onto the beat a grid, or the sections of it, that sit on the swung off-beats.
 
-    Swing delays the off-beat eighth (to 0.58-0.67 of the beat): from a beat, the next onset
-    comes *after* the middle of the beat. A tracker can lock onto the swung off-beats (off-beat
-    drums, a syncopated bass); from those, the next onset — the real beat — comes *before* the
-    middle (at 0.33-0.42), a short-long pattern that music does not swing with. So the beat-phase
-    profile of the onset strength (:func:`beat_phase_profile`) is read between 0.3 and 0.7
-    beat: when its peak there comes before ``SWING['max_phase']`` (measured from the grid's own
-    onset) and is a real onset (``SWING['min_rel']`` of the profile's peak), the beats are moved
-    that far later. Straight music (peak at 0.5) and correctly tracked swing (after 0.5) are
-    left alone; on generated hard songs it separated the 4 grids on swung off-beats from 90
-    right ones (peaks 0.39-0.44 against 0.54 and later).
+    Swing delays the off-beat eighth (to 0.58-0.67 of the beat): from a beat, the next onset comes
+    *after* the middle of the beat. A tracker can lock onto the swung off-beats (off-beat drums, a
+    syncopated bass); from those, the next onset — the real beat — comes *before* the middle (at
+    0.33-0.42), a short-long pattern that music does not swing with. So the beat-phase profile of
+    the onset strength (:func:`beat_phase_profile`) is read between 0.3 and 0.7 beat: when its peak
+    there comes before ``SWING['max_phase']`` (measured from the grid's own onset) and is a real
+    onset (``SWING['min_rel']`` of the profile's peak), the beats are moved that far later. Straight
+    music (peak at 0.5) and correctly tracked swing (after 0.5) are left alone.
 
-    A grid that slips (:func:`find_slips`) onto the swung off-beats for some sections only is
-    mended section by section: one whole-grid profile mixes both and moved the right sections
-    too (slow swung songs). A section moves when its own profile says so and the rest of the
-    grid mirrors it — its eighth after ``SWING['min_swung']`` and the two phases adding up to a
-    beat within ``SWING['mirror_tol']`` — so a section of a straight song on the straight
-    off-beats, whose notes happen to come early, stays for :func:`mend_half_beat_slips`. On
-    590 generated songs this set 24 songs right (downbeat F +0.02-0.54, most slow and swung)
-    and cost 5 0.02-0.12. ``times`` (K,) s, ``onset_env`` (T,) at 50 fps. Returns (beat times
-    (K',), the largest shift in beats, 0.0 when nothing moved).
+    A grid that slips (:func:`find_slips`) onto the swung off-beats for some sections only is mended
+    section by section: one whole-grid profile mixes both and moved the right sections too (slow
+    swung songs). A section moves when its own profile says so and the rest of the grid mirrors it —
+    its eighth after ``SWING['min_swung']`` and the two phases adding up to a beat within
+    ``SWING['mirror_tol']`` — so a section of a straight song on the straight off-beats, whose notes
+    happen to come early, stays for :func:`mend_half_beat_slips`. ``times`` (K,) s, ``onset_env``
+    (T,) at 50 fps. Returns (beat times (K',), the largest shift in beats, 0.0 when nothing moved).
     """
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 8:
@@ -351,16 +346,13 @@ def _next_intervals(times: np.ndarray) -> np.ndarray:
 
 def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
     """How much the music sounds between the beats: the onset-strength profile over the beat
-    (:func:`beat_phase_profile`, ``DOUBLE['bins']`` bins, rolled so the grid's own onset peak is
-    at 0) — its peak between 0.19 and 0.81 beat above the profile's floor, as a share of the
-    beat's own onset above the floor. ``onset_env`` (T,) at 50 fps, ``times`` (K,) s.
+    (:func:`beat_phase_profile`, ``DOUBLE['bins']`` bins, rolled so the grid's own onset peak is at
+    0) — its peak between 0.19 and 0.81 beat above the profile's floor, as a share of the beat's own
+    onset above the floor. ``onset_env`` (T,) at 50 fps, ``times`` (K,) s.
 
-    The tactus has a level below it: eighths, sixteenths or swung eighths sound between the
-    beats (228 generated songs tracked at their tempo: 0.18 and up, most above 0.3). A grid whose
-    beats have nothing between them (all 10 of those songs tracked at twice their tempo: 74-85
-    BPM songs tracked at 150-167, the off-beat eighths counted as beats: 0.016-0.105) is the
-    fastest pulse of the music, counted twice per beat; the tactus is one level up.
-    """
+    The tactus has a level below it: eighths, sixteenths or swung eighths sound between the beats. A
+    grid whose beats have nothing between them is the fastest pulse of the music, counted twice per
+    beat; the tactus is one level up."""
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 8:
         return 1.0
@@ -373,19 +365,14 @@ def subdivision_strength(onset_env: np.ndarray, times: np.ndarray) -> float:
 
 
 def dotted_pulse(times: np.ndarray, onset_env: np.ndarray) -> float | None:
-    """The tempo (BPM) of the song's pulse when the beats ``times`` (K,) s lie at 3:2 or 2:3 of
-    it, else None: the onset envelope (T,) at 50 fps repeats far more strongly (by
+    """The tempo (BPM) of the song's pulse when the beats ``times`` (K,) s lie at 3:2 or 2:3 of it,
+    else None: the onset envelope (T,) at 50 fps repeats far more strongly (by
     ``DOTTED['min_ratio']``) at the x2/3 or x3/2 level than at the tracked beat.
 
-    A syncopated bass on the "and"s or off-beat drums can hold the decoder on a dotted pulse
-    (every third eighth), which no bar grouping mends: 3 tracked beats span 2 of the song's, or
-    the reverse. Where the tracked level is right, the onsets repeat at it: on 1310 generated
-    songs every right level had the x2/3 / x3/2 salience at most 1.22 times its own, the two
-    tracked at 3:2 of theirs 2.03 and 2.48; the CC recordings 0.67 at most. On 200 songs drawn
-    after (seeds 41000-41079, 42000-42039 at 70-95 BPM, 44000-44039 at 150-180, normal
-    43000-43039) the right levels reached 1.14, the one at 3:2 (41069, downbeat F 0.00 -> 1.00)
-    2.39. Then the decoder runs again, its tempo range held to that level (``LEVEL_BAND``).
-    """
+    A syncopated bass on the "and"s or off-beat drums can hold the decoder on a dotted pulse (every
+    third eighth), which no bar grouping mends: 3 tracked beats span 2 of the song's, or the
+    reverse. Where the tracked level is right, the onsets repeat most strongly at it. Then the
+    decoder runs again, its tempo range held to that level (``LEVEL_BAND``)."""
     est = estimate_tempo(times, onset_env, FPS)
     dotted = [
         a
@@ -399,21 +386,14 @@ def octave_switch(times: np.ndarray) -> float | None:
     """The slower tempo (BPM) when the beat grid ``times`` (K,) s counts stretches of the song at
     twice the tempo of others, each for at least ``OCTAVE['min_share']`` of its span; else None.
 
-    The decoder may change its tempo octave between sections (a slow song's busier sections
-    counted in eighths, a fast song's drumless intro in half notes), and bars cut to such a
-    grid halve or double their length from one section to the next. Each interval is placed
-    by the running median of 9 intervals: at the fastest level (within 15 % of its 5th
-    percentile), at twice it (within 30 %) or between. A switch jumps, a ritardando glides:
-    the tempos between the two levels last ``OCTAVE['max_between']`` of the span at most (the
-    grids of generated songs that switched: 0.11 at most; Hungarian Dance 5, slowing from 176
-    to 86 BPM over 15 s: 0.54), and the median of 4 intervals changes by ``OCTAVE['min_jump']``
-    from one beat's 4 to the next 4 somewhere (switches 1.44-2.0; Hungarian Dance 1.27; a
-    2x ritardando over 60 beats 1.05). Then the decoder runs again at one level
-    (:func:`_decode_at_level`). On 1830 generated songs 30 grids switched: 27 now have better
-    downbeats (0.00-0.89 -> 0.64-1.00), 3 worse (0.43-0.67 -> 0.00-0.25: one level for the
-    whole song, but on the off-beats); downbeat F normal 0.978 -> 0.981, hard 0.897 -> 0.903.
-    Of them, 260 songs drawn after the rule was written (seeds 47000-52039): 4 switched, all
-    4 better (0.00-0.83 -> 0.94-1.00)."""
+    The decoder may change its tempo octave between sections (a slow song's busier sections counted
+    in eighths, a fast song's drumless intro in half notes), and bars cut to such a grid halve or
+    double their length from one section to the next. Each interval is placed by the running median
+    of 9 intervals: at the fastest level (within 15 % of its 5th percentile), at twice it (within 30
+    %) or between. A switch jumps, a ritardando glides: the tempos between the two levels last
+    ``OCTAVE['max_between']`` of the span at most, and the median of 4 intervals changes by
+    ``OCTAVE['min_jump']`` from one beat's 4 to the next 4 somewhere. Then the decoder runs again at
+    one level (:func:`_decode_at_level`)."""
     from scipy.ndimage import median_filter
 
     t = np.asarray(times, dtype=np.float64)
@@ -463,18 +443,12 @@ def _split_cycle(positions: np.ndarray) -> np.ndarray:
 
 def within_sound(times: np.ndarray, onset_env: np.ndarray) -> np.ndarray:
     """(K,) bool: the beats of ``times`` (K,) s that lie where the music sounds — from the first
-    onset to the last (``onset_env`` (T,) at 50 fps at least ``SOUND['min_onset']`` of its median
-    at the beats), with ``SOUND['slack']`` of the median beat interval either side.
+    onset to the last (``onset_env`` (T,) at 50 fps at least ``SOUND['min_onset']`` of its median at
+    the beats), with ``SOUND['slack']`` of the median beat interval either side.
 
     The decoder runs to the end of the audio: after the last note it keeps counting through the
-    ring-out and any silence after it (about 2.5 beats a song on the generated set, whose songs
-    end 1.5 s after their last bar; the CC songs: Vibe Ace's and Let's Go Fishin's final fades,
-    the second of digital silence before the Sugar Plum Fairy), and a dance cut to those beats
-    would go on after the music has stopped. On 720 generated songs (310 normal / 410 hard):
-    beat F 0.966 -> 0.974 / 0.910 -> 0.917, downbeat F 0.958 -> 0.969 / 0.866 -> 0.875 (the
-    bar after the last one is gone); beat F is lower on 40 songs, by 0.015 at most: songs that
-    end on a break, a last bar whose beats after its downbeat hit are silent.
-    """
+    ring-out and any silence after it, and a dance cut to those beats would go on after the music
+    has stopped."""
     t = np.asarray(times, dtype=np.float64)
     if len(t) < 2:
         return np.ones(len(t), dtype=bool)
@@ -520,15 +494,12 @@ def mend_off_beat_grid(
 ) -> tuple[np.ndarray, float]:
     """Move onto the beat a grid that sits on the straight off-beats all song long.
 
-    Off-beat drums and a syncopated bass can hold a tracker on the "and"s from start to end,
-    where no slip shows and the other tracker often agrees. The notes do not follow them: an
-    :func:`off_beat_score` of the grid above ``OFF_BEAT['min_score']`` moves every beat half
-    an interval later. On 360 generated songs (seeds in ``bench/bench_music.py``) the 349 grids
-    on the beat score 0.77 at most (a 142 BPM rock song; the next 0.66), 4 of the 11 grids on
-    the off-beats 0.89-1.42 (the other 7, -0.41-0.59, stay): the threshold is the middle of that
-    gap. The CC songs score -1.91 to -0.23. ``times`` (K,) s, ``onset_env`` (T,), ``chroma``
-    (12, T) at 50 fps. Returns (beat times (K,), the score).
-    """
+    Off-beat drums and a syncopated bass can hold a tracker on the "and"s from start to end, where
+    no slip shows and the other tracker often agrees. The notes do not follow them: an
+    :func:`off_beat_score` of the grid above ``OFF_BEAT['min_score']`` moves every beat half an
+    interval later (the threshold lies between the scores of grids on the beat and of grids on the
+    off-beats). ``times`` (K,) s, ``onset_env`` (T,), ``chroma`` (12, T) at 50 fps. Returns (beat
+    times (K,), the score)."""
     t = np.asarray(times, dtype=np.float64)
     score = off_beat_score(t, onset_env, chroma)
     if score <= OFF_BEAT["min_score"]:
@@ -544,27 +515,19 @@ def half_beat_parity(
     chroma: np.ndarray,
     snare_onset: np.ndarray,
 ) -> float:
-    """Which half of a grid at twice the tactus holds the beats: > 0 the even beats (0, 2, ...),
-    < 0 the odd ones.
+    """Which half of a grid at twice the tactus holds the beats: > 0 the even beats (0, 2, ...), < 0
+    the odd ones.
 
-    Four cues, each the even beats against the odd ones, summed with equal weight: where the
-    notes start (minus the even beats' :func:`off_beat_score`: pitched onsets and onset
-    strength), BeatNet's own beat activation (``act[:, 0]``; it fires harder on the beats than
-    on the eighths between them, even where its decoder counted both) and the noise onsets in
-    the snare band (backbeat snares and claps fall on beats; see :func:`_spectral`), these two
-    in z-units, and how clearly each half forms bars
-    (:func:`~dancegraph.music.bargroup.bar_clarity`: downbeat activation, harmony and backbeat
-    mark the bars of the beats, not of the eighths between them). Any one of them can mislead:
-    a syncopated part puts the notes on the eighths between the beats, off-beat hi-hats pull
-    the network there, a song without drums has no snare. On 40 generated songs halved from
-    twice their tempo the notes alone chose the right half on 31, the first three together on
-    37 (17 songs of the bench's seed sets: 13 -> 16; 23 fresh slow songs: 18 -> 21); on 61
-    halved songs (2026-11-30) the four chose right on 55, the first three on 53 (right now:
-    four-on-the-floor songs whose off-beat hi-hats and chords led the notes and the network,
-    17025, 21022, 31019, and two slow waltzes; wrong now: three hard songs with off-beat drums,
-    a syncopated bass and anticipated chords, 16029, 16055, 25007). ``times`` (K,) s; ``act``
-    (T, 2) and the curves at 50 fps.
-    """
+    Four cues, each the even beats against the odd ones, summed with equal weight: where the notes
+    start (minus the even beats' :func:`off_beat_score`: pitched onsets and onset strength),
+    BeatNet's own beat activation (``act[:, 0]``; it fires harder on the beats than on the eighths
+    between them, even where its decoder counted both) and the noise onsets in the snare band
+    (backbeat snares and claps fall on beats; see :func:`_spectral`), these two in z-units, and how
+    clearly each half forms bars (:func:`~dancegraph.music.bargroup.bar_clarity`: downbeat
+    activation, harmony and backbeat mark the bars of the beats, not of the eighths between them).
+    Any one of them can mislead: a syncopated part puts the notes on the eighths between the beats,
+    off-beat hi-hats pull the network there, a song without drums has no snare: together they
+    outvote any one. ``times`` (K,) s; ``act`` (T, 2) and the curves at 50 fps."""
     t = np.asarray(times, dtype=np.float64)
     frames = np.round(t * FPS)
     parity = -off_beat_score(t[0::2], onset_env, chroma)
@@ -583,45 +546,29 @@ def mend_half_beat_slips(
 ) -> tuple[np.ndarray, int]:
     """Put back on the beat the sections a tracker put on the off-beats.
 
-    A tracker can lock onto the off-beats for a section (a syncopated bass without drums) and
-    come back later: the grid slips by half a beat and back at a steady tempo, which the music
-    does not do (slips: :func:`find_slips`, each taken at the centre of its window). The beats
-    on one side of the slips — the side whose notes start more after its beats than the
-    other's (mean ``gain`` (K,), :func:`off_beat_gain`) — are moved by half an interval, section
-    by section, where an independent tracker's beats ``reference`` (s) at the same tempo there
-    or at half of it (median interval ratio within ``SLIP['same_level']`` or
-    ``SLIP['half_level']``: at half the tempo its beats fall on every other beat of one grid,
-    not the other's, an F-measure of 2/3 against 0) agree with the moved beats clearly better
-    (F-measure at 70 ms, by ``SLIP['agree_margin']``) than with the tracked ones (the half-tempo
-    vote, on 1830 generated songs: 6 better, none worse, by 0.06-0.27 downbeat F; librosa at
-    half the tempo had once moved a right section of normal 13001 to the off-beats, and no
-    longer does, since the slip finder's false slips are gone), or where the section's mean
-    ``gain`` is above ``SLIP['min_gain']`` and the two sides' mean gains differ by more than
-    ``SLIP['side_margin']`` (the other tracker often follows the same off-beats). A slip bounds
-    the section, so it needs less evidence than a whole grid (:func:`mend_off_beat_grid`): on
-    170 hard generated songs 0.2 moved 1524 beats right and 125 wrong, where the whole-grid
-    threshold (then 0.75) moved 1165 right and 52 wrong and left 1450 on the off-beats, against
-    1091; the side margin (on 210 hard songs) halves the wrong moves (132 -> 68 beats) and keeps
-    every right one. With one slip in the song, the shorter side — an intro or outro of
-    ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless the
-    gain says the body is the side off the beat (its notes start after its beats: gain above
-    ``SLIP['body_min_gain']``, and clearly more so than the short side's): the body of a song
-    sets its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are
-    where the trackers go astray. Chords comped on the off-beats raise the gain of a body on the
-    beat, so the body gives way only to a clear gain: on 1830 generated songs 8 bodies gave way
-    at 0.2 (then the threshold), 5 of them rightly (gain 0.24, 0.81-1.75) and 3 wrongly
-    (0.35-0.45; a normal song, 43024, downbeat F 0.00); at 0.5-0.75 alike, 12019 (0.24) now
-    stays on the off-beats (0.97 -> 0.00) and the three are right (0.95-0.99). A body whose
-    notes start on its beats does not give way to an intro whose notes start there even more
-    clearly (generated 156-159 BPM songs whose 4-bar intros both trackers put on the off-beats:
-    9001, 18023 downbeat F 0.88 -> 0.97). On 360 generated songs the rule set 15 intros/outros
-    right (downbeat F +0.03-0.12 each), moved one outro onto a body that was off the beat
-    (0.19 -> 0.02) and cost one song 0.03.
-    Shorter end parts stay: of the single slips within the first or last 11 beats, 10 were end
-    effects on a correct grid, 3 real, 3 mixed. At the section borders a beat is dropped or
+    A tracker can lock onto the off-beats for a section (a syncopated bass without drums) and come
+    back later: the grid slips by half a beat and back at a steady tempo, which the music does not
+    do (slips: :func:`find_slips`, each taken at the centre of its window). The beats on one side of
+    the slips — the side whose notes start more after its beats than the other's (mean ``gain``
+    (K,), :func:`off_beat_gain`) — are moved by half an interval, section by section, where an
+    independent tracker's beats ``reference`` (s) at the same tempo there or at half of it (median
+    interval ratio within ``SLIP['same_level']`` or ``SLIP['half_level']``: at half the tempo its
+    beats fall on every other beat of one grid, not the other's, an F-measure of 2/3 against 0)
+    agree with the moved beats clearly better (F-measure at 70 ms, by ``SLIP['agree_margin']``) than
+    with the tracked ones, or where the section's mean ``gain`` is above ``SLIP['min_gain']`` and
+    the two sides' mean gains differ by more than ``SLIP['side_margin']`` (the other tracker often
+    follows the same off-beats). A slip bounds the section, so it needs less evidence than a whole
+    grid (:func:`mend_off_beat_grid`). With one slip in the song, the shorter side — an intro or
+    outro of ``SLIP['edge_beats']`` beats up to ``SLIP['edge_share']`` of the song — moves unless
+    the gain says the body is the side off the beat (its notes start after its beats: gain above
+    ``SLIP['body_min_gain']``, and clearly more so than the short side's): the body of a song sets
+    its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are where the
+    trackers go astray. Chords comped on the off-beats raise the gain of a body on the beat, so the
+    body gives way only to a clear gain. A body whose notes start on its beats does not give way to
+    an intro whose notes start there even more clearly. Shorter end parts stay (most single slips
+    that near an end are end effects on a correct grid). At the section borders a beat is dropped or
     inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
-    Returns (beat times (K',), number of beats moved).
-    """
+    Returns (beat times (K',), number of beats moved)."""
     t = np.asarray(times, dtype=np.float64)
     centres, _ = find_slips(t)
     offset = np.zeros(len(t))  # 0 or 0.5 beat against the first beat's pulse
@@ -670,18 +617,14 @@ def find_slips(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where a beat grid slips by a fraction of a beat at a steady tempo.
 
     Slips are found in the grid's phase drift against the running interquartile mean interval
-    (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over
-    ``2 * SLIP['window']`` beats with the same tempo before and after. The decoder's beats lie
-    on 20 ms frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their
-    median (17) is 2.5 % short and the drift against it grows by a quarter beat every ten beats:
-    false slips in a steady grid (the decoder's grids of 235 generated normal songs, beat F
-    >= 0.97: 14 with a slip, 4 with the interquartile mean, which keeps the fraction and still
-    ignores the slip's own odd intervals; on 1180 songs downbeat F hard 0.885 -> 0.892).
-    ``times`` (K,) s.
-    Returns (centres, splits), int arrays (S,): per slip the beat at the centre of the window
-    it was measured over, and the beat after the window's most irregular interval (where the
-    grid jumped: the first beat of the new section).
-    """
+    (``SLIP['context']`` beats): a change of ``SLIP['min']``-``SLIP['max']`` beat over ``2 *
+    SLIP['window']`` beats with the same tempo before and after. The decoder's beats lie on 20 ms
+    frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their median (17)
+    is 2.5 % short and the drift against it grows by a quarter beat every ten beats: false slips in
+    a steady grid. The interquartile mean keeps the fraction and still ignores the slip's own odd
+    intervals. ``times`` (K,) s. Returns (centres, splits), int arrays (S,): per slip the beat at
+    the centre of the window it was measured over, and the beat after the window's most irregular
+    interval (where the grid jumped: the first beat of the new section)."""
     t = np.asarray(times, dtype=np.float64)
     w = SLIP["window"]
     centres: list[int] = []
@@ -760,7 +703,7 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
     The chroma leaves out the bins below 200 Hz, which the bass curve covers: it is the chords'
     harmony. A syncopated or walking bass moves inside the bar and an anticipated root arrives
     half a beat early, so with the bass in it the chroma changes where the bass moves, not where
-    the chords do (generated hard songs, downbeat F: see :mod:`dancegraph.music.bargroup`).
+    the chords do (docs/music.md).
 
     The snare curve is the spectral flux of the 1-5 kHz band (``SNARE_BAND_HZ``: snare wires and
     claps; hi-hats and cymbals sit above it) weighted by the band's spectral flatness, so that
@@ -838,13 +781,12 @@ def _librosa_beats(spec: _Spectral) -> tuple[np.ndarray, np.ndarray, int]:
 def _decode_at_level(
     ev: Evidence, params: BeatParams, bpm: float
 ) -> barpointer.DecodedBeats | None:
-    """The bar-pointer decode of ``ev.act`` with its tempo held within ``LEVEL_BAND`` of ``bpm``
-    or of twice it (when that fits under the decoder's ``max_bpm``), whichever path is likelier,
-    or None when it fails the no-beat test (:func:`_usable`; ``ev.values`` is not touched): a
-    dotted pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other beat
-    (generated songs: a 74 BPM song's double 800 nats less likely, a 121 BPM song's half 150
-    nats less likely), and of the two octaves a grid switched between (:func:`octave_switch`)
-    one is kept for the whole song."""
+    """The bar-pointer decode of ``ev.act`` with its tempo held within ``LEVEL_BAND`` of ``bpm`` or
+    of twice it (when that fits under the decoder's ``max_bpm``), whichever path is likelier, or
+    None when it fails the no-beat test (:func:`_usable`; ``ev.values`` is not touched): a dotted
+    pulse found in the onsets (:func:`dotted_pulse`) may be the beat or every other beat (the
+    likelier path tells which), and of the two octaves a grid switched between
+    (:func:`octave_switch`) one is kept for the whole song."""
     act = ev.act
     assert act is not None  # the re-decode steps run only on a BeatNet grid
     band = 1.0 + LEVEL_BAND
@@ -1170,21 +1112,19 @@ STEPS: tuple[tuple[str, StepFn], ...] = (
 )
 
 
-#: The steps that run by default: those that do not cost real music (GTZAN clips with human
-#: annotations) and keep the generated regression suite on target. Off: ``one_octave`` and
-#: ``split`` double grids the networks track steadily (real 85-95 BPM songs, full-length
-#: ballroom songs), ``swing`` and ``off_beat_grid`` move real grids that were right onto the
-#: off-beats (jazz, metal, reggae's off-beat chords). Table: docs/music.md.
+#: The steps that run by default: those that do not cost real recordings with human annotations
+#: and keep the generated regression suite on target. Off: ``one_octave`` and ``split`` double
+#: grids the networks track steadily, ``swing`` and ``off_beat_grid`` move right grids onto the
+#: off-beats. What each does to both: docs/music.md.
 DEFAULT_STEPS = frozenset({"dotted_pulse", "halve", "slips", "group", "within_sound"})
 
 
 @dataclass(frozen=True)
 class BeatParams:
     """The parameters of :func:`track_beats`: ``models`` the BeatNet models whose activations are
-    averaged (all three: on the generated set beat F 0.91 -> 0.97, downbeat F 0.88 -> 0.96
-    against model 1 alone), ``decoder`` the bar-pointer decoder's parameters
-    (``barpointer.MADMOM`` reproduces BeatNet), ``steps`` the names of :data:`STEPS` that run
-    (in :data:`STEPS` order, whatever the order here)."""
+    averaged (an ensemble: fewer of one model's mistakes), ``decoder`` the bar-pointer decoder's
+    parameters (``barpointer.MADMOM`` reproduces BeatNet), ``steps`` the names of :data:`STEPS` that
+    run (in :data:`STEPS` order, whatever the order here)."""
 
     models: tuple[int, ...] = DEFAULT_MODELS
     decoder: barpointer.BarPointerParams = barpointer.DEFAULT

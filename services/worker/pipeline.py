@@ -2,8 +2,10 @@
 
 Each stage is idempotent and leaves nothing half-written:
 
-- analyze: cached by the upload's sha256 at ``analysis/<sha256>.json`` (the same song is analysed
-  once, whoever asked); written atomically by the object store.
+- analyze: cached by the upload's sha256 and the style tempo range (the spec's, else the one
+  the dataset's graph declares: ``style_tempo_range``; the bars count the octave that fits it)
+  at ``analysis_key`` (the same song is analysed once per range, whoever asked); written
+  atomically by the object store.
 - search: adds the graph's learned music terms where it has learned models
   (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
   graph store (``services.graphstore.client``: in-process in the embedded
@@ -62,21 +64,31 @@ def object_store(settings: Settings | None = None) -> ObjectStore:
     return settings_store(settings or get_settings())
 
 
-def analysis_key(audio_sha256: str) -> str:
-    """Object-store key of the cached analysis of the song with this sha256."""
-    return f"analysis/{audio_sha256}.json"
+def analysis_key(audio_sha256: str, tempo_range: tuple[float, float] | None = None) -> str:
+    """Object-store key of the cached analysis of the song with this sha256: ``analysis/<sha256>``
+    ``.json``, or ``-<lo>-<hi>bpm.json`` for the analysis counted in a style tempo range."""
+    if tempo_range is None:
+        return f"analysis/{audio_sha256}.json"
+    lo, hi = tempo_range
+    return f"analysis/{audio_sha256}-{lo:g}-{hi:g}bpm.json"
 
 
 # --- stages ---------------------------------------------------------------------------------
 
 
 def analyze(
-    store: ObjectStore, audio_key: str, audio_sha256: str, filename: str | None = None
+    store: ObjectStore,
+    audio_key: str,
+    audio_sha256: str,
+    filename: str | None = None,
+    tempo_range: tuple[float, float] | None = None,
 ) -> MusicAnalysis:
-    """The song's analysis, computed once per sha256 and cached as ``MusicAnalysis.to_dict()``;
-    always returned as read back from that JSON, so a first run and a re-run see the same
-    numbers. An audio error names ``filename`` (the name the client uploaded), not the blob."""
-    key = analysis_key(audio_sha256)
+    """The song's analysis, computed once per sha256 and ``tempo_range`` (a dance style's (lo,
+    hi) BPM: the bars count the octave that fits it, ``music.analysis.analyze``) and cached as
+    ``MusicAnalysis.to_dict()``; always returned as read back from that JSON, so a first run and
+    a re-run see the same numbers. An audio error names ``filename`` (the name the client
+    uploaded), not the blob."""
+    key = analysis_key(audio_sha256, tempo_range)
     if store.exists(key):
         data = json.loads(store.get_bytes(key))
     else:
@@ -84,7 +96,7 @@ def analyze(
 
         path = store.local_path(audio_key)
         try:
-            data = analyze_music(str(path)).to_dict()
+            data = analyze_music(str(path), tempo_range=tempo_range).to_dict()
         except AudioError as exc:
             if filename:
                 exc.message = exc.message.replace(path.name, filename)
@@ -93,6 +105,19 @@ def analyze(
             raise
         store.put_bytes(key, json.dumps(data).encode("utf-8"))
     return MusicAnalysis.from_dict(data)
+
+
+def style_tempo_range(store: ObjectStore, spec: Spec) -> tuple[float, float] | None:
+    """The style tempo range whose octave the song's bars count (``render.style_tempo_range``:
+    the spec's, else the one the dataset's current graph carries); without a graph only the
+    spec's (the search stage names the missing graph)."""
+    from dancegraph.render import style_tempo_range as for_graph
+
+    try:
+        graph = load_graph(store, spec.dataset)
+    except DanceGraphError:
+        graph = None
+    return for_graph(spec, graph)
 
 
 def with_learned_terms(
@@ -262,7 +287,8 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
-        analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename)
+        tempo_range = style_tempo_range(store, spec)
+        analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename, tempo_range)
         beat.check()
         with session_scope() as session:
             _set_summary(session, job_id, analysis)

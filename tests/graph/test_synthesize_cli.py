@@ -64,6 +64,9 @@ def test_synthesize_writes_dance_files(setup, capsys):
     assert prov["spec"]["alternatives"] == 2 and prov["spec"]["seed"] == 1
     assert prov["audio"]["file"] == "song.wav" and len(prov["audio"]["sha256"]) == 64
     assert isinstance(timeline["constraints"], dict) and timeline["constraints"]
+    # the demo dataset declares no style tempo range: the bars count the tracked tempo
+    assert graph.tempo_range is None and timeline["song"]["grid_octave"] == "x1"
+    assert not any(w.startswith("grid_octave") for w in timeline["song"]["warnings"])
     alts = timeline["alternatives"]
     assert [b["node"] for b in alts[0]["bars"]] != [b["node"] for b in alts[1]["bars"]]
 
@@ -117,3 +120,46 @@ def test_synthesize_on_a_rig(setup, capsys, tmp_path: Path):
     bad = ["--rig", str(rigs / "bad_zero_length.bvh")]
     assert demo_cli("synthesize", wav, store, tmp_path / "o2", *bad) == 2
     assert "rig_zero_length" in capsys.readouterr().err
+
+
+def test_a_dataset_style_tempo_range_sets_the_octave_of_the_song_bars(setup, capsys, tmp_path):
+    """A dataset whose manifest declares its style's tempo range (``tempo_prior_bpm``) carries it
+    into its graph; a song at half that tempo is then danced on bars counted at twice the
+    tracked tempo, and the timeline says so. The same song against the same library without the
+    range (the ``setup`` store) keeps the tracked tempo (``test_synthesize_writes_dance_files``)."""
+    from dancegraph.graph.build import build_graph
+    from dancegraph.motion.dataset import import_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.store import FileStore
+
+    _, _, wav, song = setup  # 124 BPM
+    lib = write_demo_library(tmp_path / "lib")
+    manifest = json.loads((lib / "manifest.json").read_text())
+    store = FileStore(tmp_path / "store")
+    import_dataset(lib, "demo", store, {**manifest, "tempo_prior_bpm": [220, 270]})
+    build_graph(load_dataset(store, "demo"), store)
+    assert load_current(store, "demo").tempo_range == (220.0, 270.0)
+
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"seed": 1, "output": {"formats": ["bvh"], "fps": 30}}))
+    out = tmp_path / "out"
+    rc = demo_cli("synthesize", wav, store, out, "--spec", str(spec), "--alternatives", "1")
+    assert rc == 0, capsys.readouterr().err
+    printed = json.loads(capsys.readouterr().out)
+    timeline = json.loads((out / "timeline.json").read_text())
+    assert timeline["song"]["grid_octave"] == "x2" and printed["analysis"]["grid_octave"] == "x2"
+    assert 220 <= timeline["song"]["tempo_bpm"] <= 270
+    assert any(w.startswith("grid_octave") for w in timeline["song"]["warnings"])
+    # bars of 4 beats at twice the tempo: half a 124-BPM bar each, as many as the song holds
+    lengths = np.array([b["end_s"] - b["start_s"] for b in timeline["bars"]])
+    assert np.median(lengths) == pytest.approx(120.0 / 124.0, rel=0.05)
+    assert len(lengths) >= 2 * (song.duration_s * 124.0 / 240.0) - 4
+    # a spec's own tempo range overrides the dataset's: here the tracked tempo fits it
+    spec.write_text(
+        json.dumps({"seed": 1, "tempo_range": [100, 140], "output": {"formats": ["bvh"]}})
+    )
+    spec_json = ["--spec", str(spec), "--alternatives", "1"]
+    assert demo_cli("synthesize", wav, store, tmp_path / "own", *spec_json) == 0
+    capsys.readouterr()
+    timeline = json.loads((tmp_path / "own" / "timeline.json").read_text())
+    assert timeline["song"]["grid_octave"] == "x1" and timeline["song"]["tempo_bpm"] < 140
