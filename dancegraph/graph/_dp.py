@@ -150,6 +150,19 @@ def _edge_cost(indptr, indices, costs, p, q):
     return np.float32(-1.0)
 
 
+@njit(cache=True, inline="always")
+def _reused(recent, mirror_of, q):
+    """True when node q (or its mirror) is among ``recent`` (a state's last chain-step nodes,
+    -1 padded)."""
+    if recent.shape[0] == 0:
+        return False
+    mq = mirror_of[q]
+    for r in recent:
+        if r == q or (r == mq and r >= 0):
+            return True
+    return False
+
+
 @njit(cache=True, fastmath=True, inline="always")
 def _sq_dist(x, y):
     s = np.float32(0.0)
@@ -383,10 +396,13 @@ def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_n
 
 
 @njit(cache=True)
-def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+def _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty):
     """Nodes lo..hi-1 of a step with one state per node and no trajectory: each pulls its
     cheapest in-edge from ``src_best`` / ``src_state`` (the cheapest state continuing from each
-    node). Reads the states at random, writes in order; nodes are independent."""
+    node), plus ``novelty`` where q repeats a node of that state's ``recent`` row (by state).
+    Reads the states at random, writes in order; nodes are independent."""
+    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
+    mirror_of = g.mirror_of
     for q in range(lo, hi):
         u = unary_v[q]
         if u == INF:
@@ -396,6 +412,9 @@ def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge,
         for e in range(in_ptr[q], in_ptr[q + 1]):
             p = in_src[e]
             val = src_best[p] + w_edge * in_cost[e]
+            # the penalty only raises a value: checked only where it would win
+            if val < best and _reused(recent[src_state[p]], mirror_of, q):
+                val += novelty
             if val < best:
                 best = val
                 arg = src_state[p]
@@ -415,19 +434,17 @@ def _prepare_par(n, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_no
 
 
 @njit(cache=True, parallel=True)
-def _pull_par(unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+def _pull_par(unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty):
     """:func:`_pull` over all nodes in chunks on all threads."""
     n = unary_v.shape[0]
     chunks = min(n, CHUNKS)
     for i in prange(chunks):
         lo, hi = n * i // chunks, n * (i + 1) // chunks
-        _pull(
-            lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot
-        )
+        _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty)
 
 
 @njit(cache=True)
-def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost):
+def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost, novelty, window):
     """The forward pass.
 
     ``unary (V, N) float32``: cost of each node per variable (inf: not allowed); ``ch``, ``g``,
@@ -436,7 +453,10 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
     ``slots``: states per node; ``short``: length of the short list (pins, and the fallback
     when no edge reaches an allowed node); ``memo_node (N·slots, J, 2) int32`` and ``memo_cost
     (N·slots, J) float32``: charge j of state s was costed for that node pair (fill with -1 before
-    the first pass; J = 0: no cache).
+    the first pass; J = 0: no cache); ``novelty``: added to a relaxed transition into a node (or
+    its mirror) that the state's history holds at one of its last ``window`` chain steps (0: no
+    such cost; a take's consecutive bars are different nodes, so a take danced on never pays it,
+    one danced again does). Copies of tied variables are not relaxed: the ties never pay it.
 
     Returns ``back (C, N·slots) int32`` (state s = node·slots + k; its predecessor state at the
     step before, -1 at step 0 and for unused states), ``final (N·slots,) float64`` (total cost of
@@ -450,10 +470,16 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
     # the hot loops read tuple fields through locals (a field read costs reference counting)
     indptr, indices, costs = g.indptr, g.indices, g.costs
     out_feat, in_feat, blocks, weights = g.out_feat, g.in_feat, g.blocks, g.weights
-    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
     motion, stage = g.motion, tr.stage
+    mirror_of = g.mirror_of
     n_wp = tr.wp_bar.shape[0]
     back = np.empty((n_chain, n_states), np.int32)
+    # per state its nodes at its last ``window`` chain steps, newest first (-1: none), by state
+    # id; built from the predecessor's row after each step (one read per state, no walk back)
+    if novelty <= 0.0:
+        window = 0
+    recent = np.full((n_states, window), -1, np.int32)
+    recent_next = np.full((n_states, window), -1, np.int32)
     cost = np.full((n_nodes, slots), INF, np.float32)
     pose = np.zeros((n_nodes, slots, 3))
     n_slot = np.zeros(n_nodes, np.int64)
@@ -488,6 +514,9 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 if n_wp > 0:
                     pen += _waypoint_terms(tr, g, x0, z0, cy, sy, x, z, q, ch.bar[0])
             _offer(q, u + pen, -1, x, z, y, cost, cur, pose, n_slot, slots, cell)
+    if window > 0:
+        for s in range(n_states):
+            recent[s, 0] = s // slots
 
     for c in range(1, n_chain + 1):
         # prepare: each state's charges, its copies' poses and the node the next bar follows
@@ -534,17 +563,18 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     if act_base[a] < src_best[src]:
                         src_best[src] = act_base[a]
                         src_state[src] = act_state[a]
-                args = (in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur)
+                args = (src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty)
                 if n_nodes >= PARALLEL_MIN:
-                    _pull_par(unary[v], *args, n_slot)
+                    _pull_par(unary[v], g, *args)
                 else:
-                    _pull(0, n_nodes, unary[v], *args, n_slot)
+                    _pull(0, n_nodes, unary[v], g, *args)
             for a in range(0 if pull else n_act):
                 i = act_state[a]
                 base = act_base[a]
                 src = act_src[a]
                 x, z, yaw = act_pose[a, 0], act_pose[a, 1], act_pose[a, 2]
                 cy, sy = (np.cos(yaw), np.sin(yaw)) if track else (1.0, 0.0)
+                rec = recent[i]
                 lo, hi = indptr[src], indptr[src + 1]
                 if use_list:
                     lo, hi = 0, small.shape[0]
@@ -567,6 +597,8 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                         cand = base + w_edge * costs[e] + u
                     if slots == 1 and cand >= cost[q, 0]:
                         continue
+                    if _reused(rec, mirror_of, q):
+                        cand += novelty
                     nx, nz, ny = 0.0, 0.0, 0.0
                     if track:
                         pen, nx, nz, ny, _, _ = _placed(motion, stage, x, z, yaw, cy, sy, q)
@@ -580,6 +612,13 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     break
         if not reached:
             return back, final, c
+        if window > 0:
+            for q in range(n_nodes):
+                for k in range(n_slot[q]):
+                    s = q * slots + k
+                    recent_next[s, 0] = q
+                    recent_next[s, 1:] = recent[cur[q, k], : window - 1]
+            recent, recent_next = recent_next, recent
     return back, final, -1
 
 

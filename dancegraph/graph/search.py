@@ -63,6 +63,11 @@ from dancegraph.spec import Spec
 
 MEMO_BUDGET = 1 << 23  # most (charged transition, state) costs kept across passes
 DIVERSITY_PENALTY = 40.0  # per reuse of a node (or its mirror) of an earlier alternative
+# within one alternative: a transition into a node (or its mirror) that the path used at one of
+# its last NOVELTY_WINDOW chain steps costs NOVELTY_PENALTY, so a dance does not cycle through a
+# few nodes (docs/rendering.md, Novelty)
+NOVELTY_PENALTY = 30.0
+NOVELTY_WINDOW = 8
 SIGNATURE_SCALE = 100.0  # cost of a χ² of 1, per bar and per unit of signature.weight
 SIGNATURE_STEPS = (8.0, 64.0)  # penalties per bar off the motif plan
 
@@ -215,6 +220,8 @@ def _pass(problem: Problem, unary: np.ndarray, spec: Spec, memo) -> np.ndarray:
             problem.slots,
             DENSE_LIMIT,
             *memo,
+            NOVELTY_PENALTY,
+            NOVELTY_WINDOW,
         )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(
