@@ -25,10 +25,15 @@ User controls (``Spec``): include (pin a node at a bar, or the best bar of a ran
 bar's root path, checked conservatively with the bar's largest root excursion), δT (edges above it
 are not used), weights, motif pins, a target motif signature, re-creating a take's motif sequence.
 Alternatives: the search runs again with a penalty on nodes (and their mirrors) used by earlier
-alternatives, so alternatives share few nodes; each reports its own unpenalised cost.
+alternatives, so alternatives share few nodes; each reports its own unpenalised cost. Within one
+alternative a novelty cost (``NOVELTY_PENALTY``) falls on a transition into a node, or its mirror,
+that the state's own history used at one of its last ``NOVELTY_WINDOW`` chain steps, so a dance
+does not cycle through a few nodes; tied copies are not transitions the DP chooses and never pay
+it. Like the reuse penalty it steers the search and is not part of the reported cost.
 
 Speed and exactness: the DP keeps every node's cheapest state (no beam) and runs in a numba
-kernel (``_dp``) over the CSR edges, so without ties or trajectory terms it is the exact Viterbi.
+kernel (``_dp``) over the CSR edges, so without ties, trajectory terms or the novelty cost (which
+follows each state's own history) it is the exact Viterbi.
 A state's copies and root pose follow its own best history (one history per node, as Viterbi
 keeps), so tied copies and trajectories are costed exactly along the paths kept, not over all
 histories; each distinct transition between copies is costed once per state, times its count
