@@ -224,7 +224,8 @@ def _pass(problem: Problem, unary: np.ndarray, spec: Spec, memo) -> np.ndarray:
             problem.dense,
             problem.slots,
             DENSE_LIMIT,
-            *memo,
+            memo[0],
+            memo[1],
             NOVELTY_PENALTY,
             NOVELTY_WINDOW,
         )
