@@ -154,13 +154,15 @@ def _edge_cost(indptr, indices, costs, p, q):
 
 
 @njit(cache=True, inline="always")
-def _reused(recent, mirror_of, q):
-    """True when node q (or its mirror) is among ``recent`` (a state's last chain-step nodes,
-    -1 padded)."""
-    if recent.shape[0] == 0:
+def _reused(recent, s, mirror_of, q):
+    """True when node q (or its mirror) is in row s of ``recent`` (state s's last chain-step
+    nodes, -1 padded). Indexes the row rather than slicing it: a slice in a hot loop costs
+    reference counting."""
+    if recent.shape[1] == 0:
         return False
     mq = mirror_of[q]
-    for r in recent:
+    for j in range(recent.shape[1]):
+        r = recent[s, j]
         if r == q or (r == mq and r >= 0):
             return True
     return False
@@ -402,10 +404,13 @@ def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_n
 def _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty):
     """Nodes lo..hi-1 of a step with one state per node and no trajectory: each pulls its
     cheapest in-edge from ``src_best`` / ``src_state`` (the cheapest state continuing from each
-    node), plus ``novelty`` where q repeats a node of that state's ``recent`` row (by state).
-    Reads the states at random, writes in order; nodes are independent."""
+    node), plus ``novelty`` where q repeats a node of that state's row of ``recent[0]`` (by
+    state); writes the new state's row of ``recent[1]``. Reads the states at random, writes in
+    order; nodes are independent."""
     in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
     mirror_of = g.mirror_of
+    rec, rec_out = recent
+    window = rec.shape[1]
     for q in range(lo, hi):
         u = unary_v[q]
         if u == INF:
@@ -415,16 +420,54 @@ def _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, re
         for e in range(in_ptr[q], in_ptr[q + 1]):
             p = in_src[e]
             val = src_best[p] + w_edge * in_cost[e]
-            # the penalty only raises a value: checked only where it would win
-            if val < best and _reused(recent[src_state[p]], mirror_of, q):
-                val += novelty
             if val < best:
                 best = val
                 arg = src_state[p]
+        if arg >= 0 and _reused(rec, arg, mirror_of, q):
+            # the cheapest repeats a recent node: again with the penalty (it only raises a
+            # value, so it is checked only where an edge would win)
+            best = np.inf
+            arg = -1
+            for e in range(in_ptr[q], in_ptr[q + 1]):
+                p = in_src[e]
+                val = src_best[p] + w_edge * in_cost[e]
+                if val < best and _reused(rec, src_state[p], mirror_of, q):
+                    val += novelty
+                if val < best:
+                    best = val
+                    arg = src_state[p]
         if arg >= 0:
             cost[q, 0] = best + u
             cur[q, 0] = arg
             n_slot[q] = 1
+            if window > 0:
+                rec_out[q, 0] = q
+                for j in range(1, window):
+                    rec_out[q, j] = rec[arg, j - 1]
+
+
+@njit(cache=True)
+def _shift_recent(lo, hi, n_slot, cur, recent, out):
+    """Rows of ``out`` for the states of nodes lo..hi-1 (``cur (N, slots)`` their predecessor
+    states): the node, then the predecessor's row of ``recent`` without its oldest entry."""
+    slots = cur.shape[1]
+    window = recent.shape[1]
+    for q in range(lo, hi):
+        for k in range(n_slot[q]):
+            s = q * slots + k
+            i = cur[q, k]
+            out[s, 0] = q
+            for j in range(1, window):
+                out[s, j] = recent[i, j - 1]
+
+
+@njit(cache=True, parallel=True)
+def _shift_recent_par(n_slot, cur, recent, out):
+    """:func:`_shift_recent` over all nodes in chunks on all threads."""
+    n = n_slot.shape[0]
+    chunks = min(n, CHUNKS)
+    for c in prange(chunks):
+        _shift_recent(n * c // chunks, n * (c + 1) // chunks, n_slot, cur, recent, out)
 
 
 @njit(cache=True, parallel=True)
@@ -548,6 +591,7 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
         cbar = ch.bar[c]
         w_edge = w_trans * ch.relax_n[c]
         reached = False
+        shifted = False
         for rnd in range(2):
             # round 0: graph edges (or the short list when the variable is pinned);
             # round 1 only when nothing was reached: the short list, off-graph transitions allowed
@@ -556,6 +600,7 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 break
             small = _short_list(unary[v], short) if use_list else np.empty(0, np.int64)
             pull = not use_list and slots == 1 and not track
+            shifted = pull  # the pull writes its states' rows of ``recent_next``
             if pull:
                 # one state per node, no trajectory: pull each node's cheapest in-edge (the
                 # common case, about twice as fast as pushing along out-edges)
@@ -566,7 +611,8 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     if act_base[a] < src_best[src]:
                         src_best[src] = act_base[a]
                         src_state[src] = act_state[a]
-                args = (src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty)
+                rec = (recent, recent_next)
+                args = (src_best, src_state, w_edge, cost, cur, n_slot, rec, novelty)
                 if n_nodes >= PARALLEL_MIN:
                     _pull_par(unary[v], g, *args)
                 else:
@@ -577,7 +623,6 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 src = act_src[a]
                 x, z, yaw = act_pose[a, 0], act_pose[a, 1], act_pose[a, 2]
                 cy, sy = (np.cos(yaw), np.sin(yaw)) if track else (1.0, 0.0)
-                rec = recent[i]
                 lo, hi = indptr[src], indptr[src + 1]
                 if use_list:
                     lo, hi = 0, small.shape[0]
@@ -600,7 +645,7 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                         cand = base + w_edge * costs[e] + u
                     if slots == 1 and cand >= cost[q, 0]:
                         continue
-                    if _reused(rec, mirror_of, q):
+                    if _reused(recent, i, mirror_of, q):
                         cand += novelty
                     nx, nz, ny = 0.0, 0.0, 0.0
                     if track:
@@ -615,13 +660,12 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     break
         if not reached:
             return back, final, c
-        if window > 0:
-            for q in range(n_nodes):
-                for k in range(n_slot[q]):
-                    s = q * slots + k
-                    recent_next[s, 0] = q
-                    recent_next[s, 1:] = recent[cur[q, k], : window - 1]
-            recent, recent_next = recent_next, recent
+        if window > 0 and not shifted:
+            if n_nodes >= PARALLEL_MIN:
+                _shift_recent_par(n_slot, cur, recent, recent_next)
+            else:
+                _shift_recent(0, n_nodes, n_slot, cur, recent, recent_next)
+        recent, recent_next = recent_next, recent
     return back, final, -1
 
 
