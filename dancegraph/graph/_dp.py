@@ -12,8 +12,9 @@ once, times its count, as soon as the state's history decides both of its ends. 
 per state in a cache that outlives the pass (``memo``): the passes for alternatives mostly
 revisit the same histories. Copies' root poses are walked in song order. The novelty cost reads each state's nodes at its last
 chain steps (``recent``, one row per state, rebuilt from the predecessor's row after each step);
-where one state per node is pulled, a node pulls the cheapest state of each source node, whose
-row it checks only where that edge would win (the penalty only raises a value).
+where one state per node is pulled, a node checks the row of its cheapest in-edge's state and only
+where that repeats a node pulls again with the cost (it only raises a value), among the cheapest
+state of each source node, as the pull does without it.
 
 The arrays travel in three named tuples (``Graph``, ``Chain``, ``Track``) instead of long
 argument lists. The hot loops read the fields they need once, into locals, and give helpers plain
