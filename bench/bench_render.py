@@ -26,7 +26,7 @@ from dancegraph.motion.dataset import import_dataset, load_manifest  # noqa: E40
 from dancegraph.paths import shared_dir  # noqa: E402
 from dancegraph.render import render, render_path  # noqa: E402
 from dancegraph.spec import Spec  # noqa: E402
-from dancegraph.store import ObjectStore  # noqa: E402
+from dancegraph.store import FileStore  # noqa: E402
 
 FPS = 60.0
 SONG_S = 180.0
@@ -38,7 +38,7 @@ def main() -> int:
         print(f"shared mocap not found at {mocap}: set DANCEGRAPH_SHARED")
         return 1
     with tempfile.TemporaryDirectory() as tmp:
-        store = ObjectStore(Path(tmp) / "store")
+        store = FileStore(Path(tmp) / "store")
         import_dataset(
             mocap,
             "cmu-salsa",

@@ -34,7 +34,7 @@ from dancegraph.motion.demo import write_demo_library  # noqa: E402
 from dancegraph.music.generator import generate_song, write_song  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 from dancegraph.spec import Spec  # noqa: E402
-from dancegraph.store import ObjectStore  # noqa: E402
+from dancegraph.store import FileStore, ObjectStore  # noqa: E402
 
 ROWS = ["ours", "no_rhythm", "random_walk"]
 METRICS = ("cm_accuracy", "beat_accuracy", "bas_bailando", "bas_fact", "phase_r")
@@ -109,7 +109,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         out = Path(args.out) if args.out else tmp / "out"
-        store = ObjectStore(tmp / "store")
+        store = FileStore(tmp / "store")
         salsa = _library(
             store,
             "cmu-salsa",

@@ -232,6 +232,11 @@ def _add_dataset(sub) -> None:
     bld.add_argument("--max-degree", type=int, default=24, help="most out-edges kept per node")
     bld.add_argument("--no-mirror", action="store_true", help="skip the mirrored bars")
     bld.add_argument(
+        "--no-accent-anchors",
+        action="store_true",
+        help="keep the takes' beat grids (do not move beats onto their kinematic beats)",
+    )
+    bld.add_argument(
         "--blend-ratio", type=float, default=0.25, help="blended bars per original bar, at most"
     )
     bld.add_argument(
@@ -260,6 +265,7 @@ def _add_dataset(sub) -> None:
             threshold=args.threshold,
             max_out_degree=args.max_degree,
             mirror=not args.no_mirror,
+            accent_anchors=not args.no_accent_anchors,
             blend_ratio=args.blend_ratio,
             shuffle_ratio=args.shuffle_ratio,
         )

@@ -2,15 +2,19 @@
 
 One forward pass over the *chain* of tied variables (first appearances in song order), with no
 beam: every node keeps its cheapest state (up to ``slots`` states when they end in different
-places, or come from different predecessors), so without ties and trajectory terms the pass is
-the exact Viterbi. Each state carries its root pose so stage bounds and waypoints are costed on
+places, or come from different predecessors), so without ties, trajectory terms and the novelty
+cost the pass is the exact Viterbi. Each state carries its root pose so stage bounds and waypoints are costed on
 the trajectory. Song bars that are not chain steps are copies of earlier variables (repeat and
 mirror ties); their nodes come from the state's own history (back pointers). A chain bar's incoming
 transition is relaxed along graph edges (times its count in the song: copies repeat it); every
 other transition is *charged*: each distinct (variable, parity) → (variable, parity) transition
 once, times its count, as soon as the state's history decides both of its ends. Charges are kept
 per state in a cache that outlives the pass (``memo``): the passes for alternatives mostly
-revisit the same histories. Copies' root poses are walked in song order.
+revisit the same histories. Copies' root poses are walked in song order. The novelty cost reads each state's nodes at its last
+chain steps (``recent``, one row per state, rebuilt from the predecessor's row after each step);
+where one state per node is pulled, a node checks the row of its cheapest in-edge's state and only
+where that repeats a node pulls again with the cost (it only raises a value), among the cheapest
+state of each source node, as the pull does without it.
 
 The arrays travel in three named tuples (``Graph``, ``Chain``, ``Track``) instead of long
 argument lists. The hot loops read the fields they need once, into locals, and give helpers plain
@@ -148,6 +152,21 @@ def _edge_cost(indptr, indices, costs, p, q):
         else:
             hi = mid
     return np.float32(-1.0)
+
+
+@njit(cache=True, inline="always")
+def _reused(recent, s, mirror_of, q):
+    """True when node q (or its mirror) is in row s of ``recent`` (state s's last chain-step
+    nodes, -1 padded). Indexes the row rather than slicing it: a slice in a hot loop costs
+    reference counting."""
+    if recent.shape[1] == 0:
+        return False
+    mq = mirror_of[q]
+    for j in range(recent.shape[1]):
+        r = recent[s, j]
+        if r == q or (r == mq and r >= 0):
+            return True
+    return False
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -383,10 +402,16 @@ def _prepare(lo, hi, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_n
 
 
 @njit(cache=True)
-def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+def _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty):
     """Nodes lo..hi-1 of a step with one state per node and no trajectory: each pulls its
     cheapest in-edge from ``src_best`` / ``src_state`` (the cheapest state continuing from each
-    node). Reads the states at random, writes in order; nodes are independent."""
+    node), plus ``novelty`` where q repeats a node of that state's row of ``recent[0]`` (by
+    state); writes the new state's row of ``recent[1]``. Reads the states at random, writes in
+    order; nodes are independent."""
+    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
+    mirror_of = g.mirror_of
+    rec, rec_out = recent
+    window = rec.shape[1]
     for q in range(lo, hi):
         u = unary_v[q]
         if u == INF:
@@ -399,10 +424,51 @@ def _pull(lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge,
             if val < best:
                 best = val
                 arg = src_state[p]
+        if arg >= 0 and _reused(rec, arg, mirror_of, q):
+            # the cheapest repeats a recent node: again with the penalty (it only raises a
+            # value, so it is checked only where an edge would win)
+            best = np.inf
+            arg = -1
+            for e in range(in_ptr[q], in_ptr[q + 1]):
+                p = in_src[e]
+                val = src_best[p] + w_edge * in_cost[e]
+                if val < best and _reused(rec, src_state[p], mirror_of, q):
+                    val += novelty
+                if val < best:
+                    best = val
+                    arg = src_state[p]
         if arg >= 0:
             cost[q, 0] = best + u
             cur[q, 0] = arg
             n_slot[q] = 1
+            if window > 0:
+                rec_out[q, 0] = q
+                for j in range(1, window):
+                    rec_out[q, j] = rec[arg, j - 1]
+
+
+@njit(cache=True)
+def _shift_recent(lo, hi, n_slot, cur, recent, out):
+    """Rows of ``out`` for the states of nodes lo..hi-1 (``cur (N, slots)`` their predecessor
+    states): the node, then the predecessor's row of ``recent`` without its oldest entry."""
+    slots = cur.shape[1]
+    window = recent.shape[1]
+    for q in range(lo, hi):
+        for k in range(n_slot[q]):
+            s = q * slots + k
+            i = cur[q, k]
+            out[s, 0] = q
+            for j in range(1, window):
+                out[s, j] = recent[i, j - 1]
+
+
+@njit(cache=True, parallel=True)
+def _shift_recent_par(n_slot, cur, recent, out):
+    """:func:`_shift_recent` over all nodes in chunks on all threads."""
+    n = n_slot.shape[0]
+    chunks = min(n, CHUNKS)
+    for c in prange(chunks):
+        _shift_recent(n * c // chunks, n * (c + 1) // chunks, n_slot, cur, recent, out)
 
 
 @njit(cache=True, parallel=True)
@@ -415,19 +481,17 @@ def _prepare_par(n, c, ch, g, tr, w_trans, slots, back, cost, pose, act, memo_no
 
 
 @njit(cache=True, parallel=True)
-def _pull_par(unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot):
+def _pull_par(unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty):
     """:func:`_pull` over all nodes in chunks on all threads."""
     n = unary_v.shape[0]
     chunks = min(n, CHUNKS)
     for i in prange(chunks):
         lo, hi = n * i // chunks, n * (i + 1) // chunks
-        _pull(
-            lo, hi, unary_v, in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur, n_slot
-        )
+        _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, recent, novelty)
 
 
 @njit(cache=True)
-def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost):
+def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost, novelty, window):
     """The forward pass.
 
     ``unary (V, N) float32``: cost of each node per variable (inf: not allowed); ``ch``, ``g``,
@@ -436,7 +500,10 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
     ``slots``: states per node; ``short``: length of the short list (pins, and the fallback
     when no edge reaches an allowed node); ``memo_node (N·slots, J, 2) int32`` and ``memo_cost
     (N·slots, J) float32``: charge j of state s was costed for that node pair (fill with -1 before
-    the first pass; J = 0: no cache).
+    the first pass; J = 0: no cache); ``novelty``: added to a relaxed transition into a node (or
+    its mirror) that the state's history holds at one of its last ``window`` chain steps (0: no
+    such cost; a take's consecutive bars are different nodes, so a take danced on never pays it,
+    one danced again does). Copies of tied variables are not relaxed: the ties never pay it.
 
     Returns ``back (C, N·slots) int32`` (state s = node·slots + k; its predecessor state at the
     step before, -1 at step 0 and for unused states), ``final (N·slots,) float64`` (total cost of
@@ -450,10 +517,16 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
     # the hot loops read tuple fields through locals (a field read costs reference counting)
     indptr, indices, costs = g.indptr, g.indices, g.costs
     out_feat, in_feat, blocks, weights = g.out_feat, g.in_feat, g.blocks, g.weights
-    in_ptr, in_src, in_cost = g.in_ptr, g.in_src, g.in_cost
     motion, stage = g.motion, tr.stage
+    mirror_of = g.mirror_of
     n_wp = tr.wp_bar.shape[0]
     back = np.empty((n_chain, n_states), np.int32)
+    # per state its nodes at its last ``window`` chain steps, newest first (-1: none), by state
+    # id; built from the predecessor's row after each step (one read per state, no walk back)
+    if novelty <= 0.0:
+        window = 0
+    recent = np.full((n_states, window), -1, np.int32)
+    recent_next = np.full((n_states, window), -1, np.int32)
     cost = np.full((n_nodes, slots), INF, np.float32)
     pose = np.zeros((n_nodes, slots, 3))
     n_slot = np.zeros(n_nodes, np.int64)
@@ -488,6 +561,9 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 if n_wp > 0:
                     pen += _waypoint_terms(tr, g, x0, z0, cy, sy, x, z, q, ch.bar[0])
             _offer(q, u + pen, -1, x, z, y, cost, cur, pose, n_slot, slots, cell)
+    if window > 0:
+        for s in range(n_states):
+            recent[s, 0] = s // slots
 
     for c in range(1, n_chain + 1):
         # prepare: each state's charges, its copies' poses and the node the next bar follows
@@ -516,6 +592,7 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
         cbar = ch.bar[c]
         w_edge = w_trans * ch.relax_n[c]
         reached = False
+        shifted = False
         for rnd in range(2):
             # round 0: graph edges (or the short list when the variable is pinned);
             # round 1 only when nothing was reached: the short list, off-graph transitions allowed
@@ -524,6 +601,7 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                 break
             small = _short_list(unary[v], short) if use_list else np.empty(0, np.int64)
             pull = not use_list and slots == 1 and not track
+            shifted = pull  # the pull writes its states' rows of ``recent_next``
             if pull:
                 # one state per node, no trajectory: pull each node's cheapest in-edge (the
                 # common case, about twice as fast as pushing along out-edges)
@@ -534,11 +612,12 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     if act_base[a] < src_best[src]:
                         src_best[src] = act_base[a]
                         src_state[src] = act_state[a]
-                args = (in_ptr, in_src, in_cost, src_best, src_state, w_edge, cost, cur)
+                rec = (recent, recent_next)
+                args = (src_best, src_state, w_edge, cost, cur, n_slot, rec, novelty)
                 if n_nodes >= PARALLEL_MIN:
-                    _pull_par(unary[v], *args, n_slot)
+                    _pull_par(unary[v], g, *args)
                 else:
-                    _pull(0, n_nodes, unary[v], *args, n_slot)
+                    _pull(0, n_nodes, unary[v], g, *args)
             for a in range(0 if pull else n_act):
                 i = act_state[a]
                 base = act_base[a]
@@ -567,6 +646,8 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                         cand = base + w_edge * costs[e] + u
                     if slots == 1 and cand >= cost[q, 0]:
                         continue
+                    if _reused(recent, i, mirror_of, q):
+                        cand += novelty
                     nx, nz, ny = 0.0, 0.0, 0.0
                     if track:
                         pen, nx, nz, ny, _, _ = _placed(motion, stage, x, z, yaw, cy, sy, q)
@@ -580,6 +661,12 @@ def forward(unary, ch, g, tr, w_trans, dense, slots, short, memo_node, memo_cost
                     break
         if not reached:
             return back, final, c
+        if window > 0 and not shifted:
+            if n_nodes >= PARALLEL_MIN:
+                _shift_recent_par(n_slot, cur, recent, recent_next)
+            else:
+                _shift_recent(0, n_nodes, n_slot, cur, recent, recent_next)
+        recent, recent_next = recent_next, recent
     return back, final, -1
 
 

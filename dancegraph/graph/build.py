@@ -62,6 +62,7 @@ from dancegraph.motion.stitch import (
     seam_distance,
     seam_features,
 )
+from dancegraph.rhythm.motion import motion_stops
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES, nearest_common, to_bits, to_pattern
 from dancegraph.store import ObjectStore
 
@@ -92,6 +93,9 @@ class BuildParams:
     n_motifs: int | None = None
     seed: int = 0
     chunk: int = 512
+    accent_anchors: bool = True  # move motion-read grids' beats onto the take's stops
+    accent_tolerance: float = 0.45  # beats: how far from a grid beat an accent may anchor it
+    accent_max_speed: float = 1.5  # bound on a beat interval's stretch or squeeze by the anchors
 
     def __post_init__(self) -> None:
         if self.frames_per_bar % 4 or self.frames_per_bar < 16:
@@ -102,6 +106,10 @@ class BuildParams:
             raise ValueError("cut_step must be in (0, 1] beats")
         if self.threshold <= 0:
             raise ValueError("threshold must be positive")
+        if not 0.0 < self.accent_tolerance < 0.5:
+            raise ValueError("accent_tolerance must be in (0, 0.5) beats")
+        if not self.accent_max_speed > 1.0:
+            raise ValueError("accent_max_speed must be above 1")
 
     def offsets(self) -> np.ndarray:
         """The cut offsets (beats) the edge distance is the least over: 0 first."""
@@ -181,6 +189,65 @@ class BarSet:
             frames=np.concatenate(frames),
             clip_tags=dict(clip_tags or {}),
         )
+
+
+def accent_anchors(
+    bar_beats: np.ndarray, accents: np.ndarray, tolerance: float = 0.45, max_speed: float = 1.5
+) -> np.ndarray:
+    """A take's bar beats moved onto its own motion accents: ``(n, 5)`` s, like ``bar_beats``.
+
+    ``bar_beats (n, 5)``: the take's bars' beat times (s, its beat grid); ``accents (K,)``: the
+    take's motion beats (s; the build gives ``rhythm.motion.motion_stops``). Each distinct grid
+    beat (a beat shared by two adjoining bars counts once, so both keep sharing it) with an
+    accent within ``tolerance`` of its bar's beat length moves onto that accent; the beats
+    between moved ones shift by the linear interpolation of their shifts (constant beyond the
+    first and last). Where a beat interval of a bar would be stretched or squeezed by more than
+    ``max_speed`` (ratio to the grid's interval), the end of it that moved further moves back
+    until the interval is at the bound (where an end is not anchored, the anchor that moved
+    further is dropped), until no interval is. Why: the renderer maps a node's beats onto the
+    song's (``retime.node_warp``), so the accents land on the song's beats; a steady grid
+    leaves them at any phase of the beat.
+    """
+    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    acc = np.sort(np.asarray(accents, dtype=float).reshape(-1))
+    if bb.size == 0 or acc.size == 0:
+        return bb.copy()
+    flat = bb.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    new = np.concatenate([[True], np.diff(flat[order]) > 1e-6])
+    group = np.empty(flat.size, dtype=np.int64)
+    group[order] = np.cumsum(new) - 1
+    times = flat[order][new]
+    beat_len = np.repeat((bb[:, 4] - bb[:, 0]) / 4.0, 5)
+    period = np.full(times.size, np.inf)
+    np.minimum.at(period, group, beat_len)
+    j = np.searchsorted(acc, times)
+    left, right = acc[np.maximum(j - 1, 0)], acc[np.minimum(j, acc.size - 1)]
+    near = np.where(times - left <= right - times, left, right)
+    shift = near - times
+    anchored = np.abs(shift) <= tolerance * period
+    grp = group.reshape(-1, 5)
+    lo, hi = grp[:, :4].reshape(-1), grp[:, 1:].reshape(-1)  # every bar's beat intervals
+    grid = times[hi] - times[lo]
+    clips = 0
+    while anchored.any():
+        d = np.interp(times, times[anchored], shift[anchored])
+        ratio = (times[hi] + d[hi] - times[lo] - d[lo]) / grid
+        bad = np.where(ratio > 0, np.maximum(ratio / max_speed, 1.0 / (ratio * max_speed)), np.inf)
+        worst = int(np.argmax(bad))
+        if bad[worst] <= 1.0 + 1e-9:
+            return (times + d)[group].reshape(-1, 5)
+        a, b = lo[worst], hi[worst]
+        if anchored[a] and anchored[b] and clips < 20 * times.size:
+            # the end that moved further goes back until the interval is at the bound
+            k, other = (a, b) if abs(shift[a]) > abs(shift[b]) else (b, a)
+            target = grid[worst] * (max_speed if ratio[worst] > 1 else 1.0 / max_speed)
+            shift[k] = d[other] + (target - grid[worst]) * (1.0 if k == b else -1.0)
+            clips += 1
+        else:  # an end follows its neighbours: drop the anchor that moved furthest near it
+            ends = [k for k in (a, b) if anchored[k]] or list(np.flatnonzero(anchored))
+            anchored[max(ends, key=lambda k: abs(shift[k]))] = False
+    return bb.copy()
 
 
 def take_bars(motion: Motion, bar_beats: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
@@ -898,19 +965,36 @@ def build_arrays(
     return arrays, ids, manifest
 
 
-def bars_from_dataset(dataset, progress: Progress | None = None) -> BarSet:
-    """Every bar of an imported ``Dataset`` with the frames of its take around it (``BarSet``)."""
+def bars_from_dataset(
+    dataset, progress: Progress | None = None, params: BuildParams | None = None
+) -> BarSet:
+    """Every bar of an imported ``Dataset`` with the frames of its take around it (``BarSet``);
+    with ``params.accent_anchors`` (the default) the beats of each take whose grid was read from
+    its motion (``beat_source`` not ``annotation``) moved onto the moments it stops
+    (``accent_anchors`` on ``rhythm.motion.motion_stops``); an annotated grid is where the take's
+    music had its beats, and the take's own relation to them is kept."""
+    params = params or BuildParams()
     clips = [c.id for c in dataset.clips]
     by_clip: dict[str, list] = {}
     for b in dataset.bars:
         by_clip.setdefault(b.clip_id, []).append(b)
+    read_from_motion = {c.id: c.beat_source != "annotation" for c in dataset.clips}
     takes = []
     for k, cid in enumerate(clips):
         bl = sorted(by_clip.get(cid, []), key=lambda b: b.index)
+        motion = dataset.motion(cid)
+        bar_beats = np.array([b.beat_times for b in bl], dtype=float).reshape(-1, 5)
+        if params.accent_anchors and read_from_motion[cid] and len(bl):
+            bar_beats = accent_anchors(
+                bar_beats,
+                motion_stops(motion),
+                params.accent_tolerance,
+                params.accent_max_speed,
+            )
         takes.append(
             (
-                dataset.motion(cid),
-                np.array([b.beat_times for b in bl], dtype=float).reshape(-1, 5),
+                motion,
+                bar_beats,
                 np.array([b.index for b in bl], dtype=np.int64),
                 [b.signature_raw or b.signature for b in bl],
                 np.array([(b.start_frame, b.end_frame) for b in bl], dtype=np.int64).reshape(-1, 2),
@@ -939,7 +1023,7 @@ def build_graph(
     the node styles / signatures instead of the descriptor and the dataset's signatures.
     """
     params = params or BuildParams()
-    bars = bars_from_dataset(dataset, progress)
+    bars = bars_from_dataset(dataset, progress, params)
     learned = None
     if style_model is not None or rhythm_model is not None:
         from functools import partial

@@ -25,10 +25,15 @@ User controls (``Spec``): include (pin a node at a bar, or the best bar of a ran
 bar's root path, checked conservatively with the bar's largest root excursion), δT (edges above it
 are not used), weights, motif pins, a target motif signature, re-creating a take's motif sequence.
 Alternatives: the search runs again with a penalty on nodes (and their mirrors) used by earlier
-alternatives, so alternatives share few nodes; each reports its own unpenalised cost.
+alternatives, so alternatives share few nodes; each reports its own unpenalised cost. Within one
+alternative a novelty cost (``NOVELTY_PENALTY``) falls on a transition into a node, or its mirror,
+that the state's own history used at one of its last ``NOVELTY_WINDOW`` chain steps, so a dance
+does not cycle through a few nodes; tied copies are not transitions the DP chooses and never pay
+it. Like the reuse penalty it steers the search and is not part of the reported cost.
 
 Speed and exactness: the DP keeps every node's cheapest state (no beam) and runs in a numba
-kernel (``_dp``) over the CSR edges, so without ties or trajectory terms it is the exact Viterbi.
+kernel (``_dp``) over the CSR edges, so without ties, trajectory terms or the novelty cost (which
+follows each state's own history) it is the exact Viterbi.
 A state's copies and root pose follow its own best history (one history per node, as Viterbi
 keeps), so tied copies and trajectories are costed exactly along the paths kept, not over all
 histories; each distinct transition between copies is costed once per state, times its count
@@ -63,6 +68,11 @@ from dancegraph.spec import Spec
 
 MEMO_BUDGET = 1 << 23  # most (charged transition, state) costs kept across passes
 DIVERSITY_PENALTY = 40.0  # per reuse of a node (or its mirror) of an earlier alternative
+# within one alternative: a transition into a node (or its mirror) that the path used at one of
+# its last NOVELTY_WINDOW chain steps costs NOVELTY_PENALTY, so a dance does not cycle through a
+# few nodes (docs/rendering.md, Novelty)
+NOVELTY_PENALTY = 30.0
+NOVELTY_WINDOW = 8
 SIGNATURE_SCALE = 100.0  # cost of a χ² of 1, per bar and per unit of signature.weight
 SIGNATURE_STEPS = (8.0, 64.0)  # penalties per bar off the motif plan
 
@@ -214,7 +224,10 @@ def _pass(problem: Problem, unary: np.ndarray, spec: Spec, memo) -> np.ndarray:
             problem.dense,
             problem.slots,
             DENSE_LIMIT,
-            *memo,
+            memo[0],
+            memo[1],
+            NOVELTY_PENALTY,
+            NOVELTY_WINDOW,
         )
     if dead >= 0:  # pragma: no cover - the dense fallback keeps every step reachable
         raise SpecError(

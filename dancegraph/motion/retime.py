@@ -4,8 +4,9 @@
 the monotone cubic of Fritsch and Carlson (PCHIP) between the anchors and straight lines
 with the end slopes beyond them. A rendered bar maps song time to the source frames of its node
 through two of them (``song_phase`` and ``node_warp``), so every beat of the node lands on the
-song's beat of the same number, the dance speeds up and slows down with uneven beats, and the
-warp stays defined past the bar's ends, where the seam's cut may fall (docs/rendering.md).
+song's beat of the same number, the dance speeds up and slows down with uneven beats (turning
+from one beat's rate to the next on the beat, ``TURN_BEATS``), and the warp stays defined past
+the bar's ends, where the seam's cut may fall (docs/rendering.md).
 """
 
 from __future__ import annotations
@@ -21,6 +22,11 @@ from dancegraph.motion.skeleton import Motion
 NODE_BEATS = np.arange(-2, 7)
 #: Column of the downbeat (beat 0) in a node's beats: beat j is column ``BEAT0 + j``.
 BEAT0 = 2
+#: Half-width (beats) of the turn around each beat in ``song_phase`` and ``node_warp``: the rate
+#: of a beat interval holds from this far after its first beat to this far before its last, so
+#: a change of rate between two beats happens on the beat, where an accent-anchored take stops
+#: (docs/rendering.md, "Accent anchors"), and not mid-beat, where it would make a new stop.
+TURN_BEATS = 0.2
 
 
 class Warp:
@@ -96,21 +102,38 @@ def _strictly_increasing(v: np.ndarray) -> np.ndarray:
 def song_phase(bar_beats: np.ndarray) -> Warp:
     """Song time (s) → beat phase: beat j of bar b (``bar_beats (B, 5)`` s) at phase ``4b + j``.
 
-    The anchors are every bar's beats 0-3 and the last bar's closing downbeat, so a gap between
-    two bars (a downbeat correction) is danced by the earlier bar, as ``render.bar_frames`` gives
-    its frames to it.
+    The anchors are every bar's beats 0-3 and the last bar's closing downbeat (with their turns,
+    ``_turns``), so a gap between two bars (a downbeat correction) is danced by the earlier bar,
+    as ``render.bar_frames`` gives its frames to it.
     """
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     if len(bb) == 0:
         raise ValueError("song_phase needs at least one bar")
     times = np.concatenate([bb[:, :4].reshape(-1), bb[-1:, 4]])
-    return Warp(times, np.arange(times.size, dtype=float))
+    phase, times = _turns(np.arange(times.size, dtype=float), times)
+    return Warp(times, phase)
 
 
 def node_warp(beats: np.ndarray) -> Warp:
     """Bar phase (beats, 0 = downbeat) → frame of a node's stored motion; ``beats (9,)``: the
-    frames (fractional) of its beats -2 .. 6 (``NODE_BEATS``)."""
-    return Warp(NODE_BEATS.astype(float), np.asarray(beats, dtype=float))
+    frames (fractional) of its beats -2 .. 6 (``NODE_BEATS``), with their turns (``_turns``)."""
+    return Warp(*_turns(NODE_BEATS.astype(float), np.asarray(beats, dtype=float)))
+
+
+def _turns(phase: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Anchors ``phase (K,)`` (beats, one apart) → ``value (K,)`` with two more about each inner
+    beat, ``TURN_BEATS`` before and after it on the straight lines of its two intervals (one
+    after the first beat and one before the last), so the PCHIP through them is straight within
+    each interval and turns from one interval's rate to the next within ``TURN_BEATS`` of the
+    beat: ``(phase (3K-4,), value (3K-4,))``, K >= 2."""
+    w = TURN_BEATS
+    rate = np.diff(value) / np.diff(phase)
+    before = (phase[1:] - w, value[1:] - w * rate)  # each interval's end, approached
+    after = (phase[:-1] + w, value[:-1] + w * rate)  # each interval's start, left
+    p = np.concatenate([phase, before[0], after[0]])
+    v = np.concatenate([value, before[1], after[1]])
+    order = np.argsort(p, kind="stable")
+    return p[order], v[order]
 
 
 def sample(motion: Motion, frames: np.ndarray) -> Motion:

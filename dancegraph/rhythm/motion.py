@@ -13,6 +13,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import argrelextrema
 
+from dancegraph.metrics.kinetic import smpl_positions
+from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.skeleton import Motion
+
 #: Shiratori-style motion beats (values chosen on the generated demo library, whose key poses
 #: are exact, see docs/evaluation.md): the speed curve's Gaussian smoothing (s) ...
 STOP_SMOOTH_S = 0.03
@@ -85,3 +89,11 @@ def shiratori_beats(smpl: np.ndarray, fps: float) -> np.ndarray:
     denom = y0 - 2.0 * y1 + y2
     shift = np.where(denom > 1e-12, 0.5 * (y0 - y2) / np.where(denom > 1e-12, denom, 1.0), 0.0)
     return (k + np.clip(shift, -0.5, 0.5)) / fps
+
+
+def motion_stops(motion: Motion) -> np.ndarray:
+    """``(K,)`` s: the ``shiratori_beats`` of a motion, read on its SMPL-like joints
+    (``metrics.kinetic.smpl_positions``) at its own frame rate; raises ``skeleton_unmapped``
+    where a canonical joint is missing."""
+    positions, world = forward_kinematics(motion)
+    return shiratori_beats(smpl_positions(motion.skeleton, positions, world), motion.fps)

@@ -10,10 +10,11 @@ from pydantic import ValidationError
 
 from dancegraph.errors import NotFoundError, SpecError
 from dancegraph.graph import _dp
+from dancegraph.graph import search as search_module
 from dancegraph.graph.artifact import graph_from_arrays
 from dancegraph.graph.build import BuildParams, build_arrays
-from dancegraph.graph.problem import structure_pairs
-from dancegraph.graph.search import placed_motion, root_trajectory, search
+from dancegraph.graph.problem import compile_spec, structure_pairs
+from dancegraph.graph.search import placed_motion, root_trajectory, run, search
 from dancegraph.motion.retime import BEAT0
 from dancegraph.render import render_path
 from dancegraph.spec import Spec
@@ -90,6 +91,58 @@ def test_mirrored_bars_get_mirrored_nodes(demo_graph, song):
         for start in (0, 4, 8, 12):  # meter ids (0, 1, 0, 2): bar 0 and bar 2 of each phrase
             a, b = alt.index[start], alt.index[start + 2]
             assert mirror_of[a] == b
+
+
+def _cycling_problem(graph, analysis):
+    """The search problem of ``analysis`` with its data terms replaced: 0 on the two nodes with
+    the cheapest pair of edges between them (a → b → a), 10 on every other allowed node, so the
+    cheapest path alternates the two for the whole song."""
+    problem = compile_spec(graph, analysis, Spec(alternatives=1))
+    dp = problem.dp
+    pairs = [
+        (dp.costs[e] + _dp._edge_cost(dp.indptr, dp.indices, dp.costs, b, a), a, b)
+        for a in range(graph.n_nodes)
+        for e in range(dp.indptr[a], dp.indptr[a + 1])
+        if (b := int(dp.indices[e])) != a
+        and _dp._edge_cost(dp.indptr, dp.indices, dp.costs, b, a) >= 0
+    ]
+    _, a, b = min(pairs)
+    allowed = np.isfinite(problem.unary)
+    unary = np.where(allowed, np.float32(10.0), np.float32(np.inf))
+    unary[:, [a, b]] = np.where(allowed[:, [a, b]], np.float32(0.0), np.float32(np.inf))
+    return dataclasses.replace(problem, unary=unary.astype(np.float32))
+
+
+@pytest.mark.parametrize(("phrases", "meter_ids"), [("ABCD", (0, 1, 2, 3)), ("AABA", (0, 1, 0, 2))])
+def test_novelty_breaks_a_two_node_cycle(demo_graph, phrases, meter_ids, monkeypatch):
+    """The cheapest path cycles two nodes; with the novelty cost no node (or its mirror) comes
+    back within NOVELTY_WINDOW chain steps, and repeat and mirror ties stay exact."""
+    analysis = synthetic_analysis(phrases, bars_per_phrase=4, meter_ids=meter_ids)
+    problem = _cycling_problem(demo_graph, analysis)
+    mirror_of = np.asarray(demo_graph.mirror_of)
+    default = search_module.NOVELTY_PENALTY
+
+    def path(penalty):
+        monkeypatch.setattr(search_module, "NOVELTY_PENALTY", penalty)
+        alt = run(demo_graph, problem, Spec(alternatives=1)).alternatives[0]
+        assert alt.violations == []
+        nodes = np.asarray(alt.index)
+        for t in range(len(nodes)):  # every bar is its variable's chain bar's node (or mirror)
+            b = problem.chain.bar[problem.step[t]]
+            flip = problem.parity[t] != problem.parity[b]
+            assert nodes[t] == (mirror_of[nodes[b]] if flip else nodes[b])
+        return nodes
+
+    cycling = path(0.0)
+    novel = path(default)
+    if phrases == "ABCD":  # no ties: the two nodes throughout
+        assert len(set(cycling.tolist())) == 2
+    assert len(set(novel.tolist())) > len(set(cycling.tolist()))
+    chain_nodes = novel[problem.chain.bar]
+    w = search_module.NOVELTY_WINDOW
+    for c in range(1, len(chain_nodes)):
+        recent = chain_nodes[max(0, c - w) : c]
+        assert chain_nodes[c] not in recent and mirror_of[chain_nodes[c]] not in recent
 
 
 def test_structure_rules_can_be_switched_off(demo_graph, song):
@@ -429,7 +482,9 @@ def tiled_graph(demo_graph):
     return g
 
 
-def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph):
+def test_search_is_the_exact_viterbi_on_a_medium_graph(tiled_graph, monkeypatch):
+    # the novelty cost depends on the history: without it the pass is the plain Viterbi
+    monkeypatch.setattr(search_module, "NOVELTY_PENALTY", 0.0)
     from dancegraph.graph.problem import (
         _music_arrays,
         data_costs,

@@ -1,0 +1,159 @@
+"""Accent anchors: a take's beats moved onto its own pauses, and the rendered dance's pauses on
+the song's beats.
+
+Takes: demo clips that pause on every beat, time-warped so their pauses sit off a steady grid
+(a dancer who is early and late against the music's beat), the steady grid given as their bars.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dancegraph.graph.artifact import graph_from_arrays
+from dancegraph.graph.build import BarSet, BuildParams, accent_anchors, build_arrays, take_bars
+from dancegraph.metrics.beats import phase_concentration
+from dancegraph.motion.demo import DemoClip, make_clip
+from dancegraph.motion.features import kinematic_beats
+from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.retime import Warp, sample
+from dancegraph.render import render_path
+from dancegraph.rhythm.motion import motion_stops
+
+ON_EVERY_BEAT = "01010101"  # slots 0, 2, 4, 6: a pause on each beat
+
+
+def _off_grid_take(seed: int, tempo: float, jitter: float):
+    """``(motion, bar_beats (n, 5) s, pauses (K,) s)``: a clip pausing on every beat of its
+    steady grid, warped so the pause of grid beat k sits ``jitter`` beats early or late
+    (random sign per beat); the grid returned is the steady one."""
+    rng = np.random.default_rng(seed)
+    motion, bars, _ = make_clip(DemoClip(f"t{seed}", "groove", tempo, 6, (ON_EVERY_BEAT,)), rng)
+    bars = np.asarray(bars, dtype=float)
+    grid = np.unique(bars.reshape(-1))
+    beat = 60.0 / tempo
+    pauses = grid + jitter * beat * rng.choice([-1.0, 1.0], grid.size)
+    pauses[0], pauses[-1] = grid[0], grid[-1]  # the take's ends stay
+    t = np.arange(motion.n_frames) / motion.fps
+    warped = sample(motion, Warp(pauses, grid)(t) * motion.fps)
+    warped.fps = motion.fps
+    return warped, bars, pauses[1:-1]
+
+
+def _pauses(motion) -> np.ndarray:
+    return kinematic_beats(forward_kinematics(motion)[0], motion.fps)
+
+
+def test_anchors_move_the_grid_beats_onto_the_pauses():
+    motion, bars, pauses = _off_grid_take(1, 110.0, 0.15)
+    found = _pauses(motion)
+    grid = np.unique(bars.reshape(-1))[1:-1]
+    beat = 60.0 / 110.0
+    # the pauses are detected where they were put, 0.15 beat off the grid
+    assert np.abs(found[:, None] - pauses[None, :]).min(axis=0).max() < 1.5 / motion.fps
+    assert np.abs(np.abs(found[:, None] - grid[None, :]).min(axis=0) - 0.15 * beat).max() < 0.02
+
+    anchored = accent_anchors(bars, found, tolerance=0.25, max_speed=1.5)
+    moved = np.unique(anchored.reshape(-1))[1:-1]
+    assert np.abs(moved - pauses).max() < 1.5 / motion.fps
+    # adjoining bars still share their downbeats, and every bar's beats increase
+    assert np.array_equal(anchored[:-1, 4], anchored[1:, 0])
+    assert np.all(np.diff(anchored, axis=1) > 0)
+    # off by more than the tolerance: the grid stays
+    assert np.allclose(accent_anchors(bars, found, tolerance=0.1, max_speed=1.5), bars)
+
+
+def test_anchors_keep_the_speed_bound():
+    grid = np.arange(17) * 0.5  # 120 BPM, 4 bars
+    bars = np.stack([grid[4 * b : 4 * b + 5] for b in range(4)])
+    pauses = grid + 0.12 * np.where(np.arange(grid.size) % 2, 1.0, -1.0)  # ±0.24 beat, alternating
+    for limit in (1.2, 1.5, 2.0):
+        anchored = accent_anchors(bars, pauses, tolerance=0.3, max_speed=limit)
+        ratio = np.diff(anchored, axis=1) / np.diff(bars, axis=1)
+        assert ratio.max() <= limit + 1e-9 and ratio.min() >= 1.0 / limit - 1e-9
+        assert np.array_equal(anchored[:-1, 4], anchored[1:, 0])
+    # a loose bound keeps every anchor: each beat on its pause
+    assert np.allclose(np.unique(accent_anchors(bars, pauses, 0.3, 2.0)), pauses)
+    assert np.array_equal(accent_anchors(bars, np.zeros(0)), bars)
+
+
+@pytest.mark.parametrize("bad", [{"accent_tolerance": 0.5}, {"accent_max_speed": 1.0}])
+def test_anchor_params_are_checked(bad):
+    with pytest.raises(ValueError):
+        BuildParams(**bad)
+
+
+def _graph(takes, anchors: bool):
+    rows = []
+    for motion, bars, _ in takes:
+        if anchors:  # as bars_from_dataset does
+            bars = accent_anchors(bars, motion_stops(motion))
+        frames = np.round(bars[:, [0, 4]] * motion.fps).astype(np.int64)
+        rows.append((motion, bars, np.arange(len(bars)), [ON_EVERY_BEAT] * len(bars), frames))
+    clips = [f"t{k}" for k in range(len(takes))]
+    bars = BarSet.from_takes(takes[0][0].skeleton, clips, rows)
+    arrays, ids, manifest = build_arrays(bars, BuildParams(blend_ratio=0, shuffle_ratio=0))
+    g = graph_from_arrays(arrays, dict(manifest, name="anchors", version="test"))
+    g.node_ids[:] = ids
+    g._index = {n: i for i, n in enumerate(ids)}
+    return g
+
+
+def test_rendered_pauses_land_on_the_song_beats():
+    """Every bar of the takes danced in turn on a song at another tempo with uneven beats: with
+    anchors (on the takes' Shiratori stops) the dance's kinematic beats (minima of mean joint
+    speed) gather on the song's beats (R >= 0.8), without them they do not."""
+    takes = [_off_grid_take(seed, tempo, 0.2) for seed, tempo in ((2, 104.0), (3, 118.0))]
+    rng = np.random.default_rng(7)
+    song_beats = np.cumsum(np.r_[1.0, 0.5 + rng.uniform(-0.03, 0.03, 48)])
+    bar_beats = np.stack([song_beats[4 * b : 4 * b + 5] for b in range(12)])
+    fps = 60.0
+    r = {}
+    for anchors in (False, True):
+        g = _graph(takes, anchors)
+        nodes = [f"t{b // 6 % 2}:{b % 6}" for b in range(12)]
+        dance, _ = render_path(g, nodes, bar_beats, fps, foot_cleanup=False)
+        found = _pauses(dance)
+        r[anchors] = phase_concentration(song_beats[:49], found)[0]
+    assert r[True] >= 0.8
+    assert r[False] < 0.5
+
+
+def test_build_anchors_motion_read_grids_only(tmp_path):
+    """``bars_from_dataset``: the demo library's annotated grids stay as annotated; gridded from
+    its motion instead (annotations removed), beats move, each moved one onto a stop."""
+    import json
+
+    from dancegraph.graph.build import bars_from_dataset
+    from dancegraph.motion.dataset import import_dataset, load_dataset
+    from dancegraph.motion.demo import write_demo_library
+    from dancegraph.store import FileStore
+
+    lib = write_demo_library(tmp_path / "lib")
+    annotated = json.loads((lib / "manifest.json").read_text())
+    from_motion = json.loads(json.dumps(annotated))
+    for clip in from_motion["clips"].values():
+        del clip["bars"], clip["signatures"]
+    store = FileStore(tmp_path / "store")
+    for name, manifest in (("annotated", annotated), ("from_motion", from_motion)):
+        import_dataset(lib, name, store, manifest)
+    on, off = BuildParams(), BuildParams(accent_anchors=False)
+
+    ds = load_dataset(store, "annotated")
+    assert {c.beat_source for c in ds.clips} == {"annotation"}
+    assert np.array_equal(
+        bars_from_dataset(ds, params=on).beats, bars_from_dataset(ds, params=off).beats
+    )
+
+    ds = load_dataset(store, "from_motion")
+    assert "annotation" not in {c.beat_source for c in ds.clips}
+    moved, kept = bars_from_dataset(ds, params=on), bars_from_dataset(ds, params=off)
+    assert not np.allclose(moved.beats, kept.beats)
+    by_clip = {}
+    for b in ds.bars:
+        by_clip.setdefault(b.clip_id, []).append(b)
+    for c, clip in enumerate(moved.clips):
+        grid = np.array([b.beat_times for b in sorted(by_clip[clip], key=lambda b: b.index)])
+        motion = ds.motion(clip)
+        want, _ = take_bars(motion, accent_anchors(grid, motion_stops(motion)))
+        assert np.allclose(moved.beats[moved.clip == c], want)
