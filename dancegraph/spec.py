@@ -205,7 +205,7 @@ class Spec(_Strict):
         description="the dance style's tempo range [lo, hi] in BPM of the counted beat: a song "
         "tracked at half or twice a tempo inside it gets its beats and bars counted at that "
         "tempo (analysis grid_octave x2 or x1/2, with a warning). Default: the range the "
-        "dataset declares (its manifest's tempo_prior_bpm), else the tracked tempo",
+        "dataset declares (its manifest's style_tempo_bpm), else the tracked tempo",
     )
     output: Output = Field(default_factory=Output)
     callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(

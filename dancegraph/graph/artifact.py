@@ -151,10 +151,10 @@ class MotionGraph:
     @property
     def tempo_range(self) -> tuple[float, float] | None:
         """The dance style's tempo range (lo, hi) BPM of the counted beat that the graph's
-        dataset declares (manifest ``tempo_prior_bpm``): a song analysed for this graph counts
+        dataset declares (manifest ``style_tempo_bpm``): a song analysed for this graph counts
         the octave that fits it (``music.analysis.analyze(..., tempo_range=)``). None where the
         dataset declares none or the graph was built before the range was carried."""
-        rng = (self.manifest.get("dataset") or {}).get("tempo_prior_bpm")
+        rng = (self.manifest.get("dataset") or {}).get("style_tempo_bpm")
         return (float(rng[0]), float(rng[1])) if rng else None
 
     @property

@@ -1047,8 +1047,8 @@ def build_graph(
         "licence": getattr(dataset, "licence", None),
         # carried into every result's timeline.json provenance (CMU asks for it in derived works)
         "acknowledgement": dataset.meta.get("acknowledgement"),
-        # the style's tempo range: a song's bars count the octave that fits it (tempo_range)
-        "tempo_prior_bpm": dataset.meta.get("tempo_prior_bpm"),
+        # the style's danced tempo range: a song's bars count the octave that fits it
+        "style_tempo_bpm": dataset.meta.get("style_tempo_bpm"),
     }
     return artifact.write_graph(store, dataset.name, arrays, manifest, node_ids=ids)
 

@@ -31,9 +31,10 @@ do not pass silently::
     fps_reason: "..."                # ... and say why (kept in the dataset)
     scale: 1.0                       # file units → metres (CMU ASF units: 0.056444)
     style: salsa                     # style label of every clip
-    tempo_prior_bpm: [150, 220]      # the style's tempo range (BPM of the counted beat): the
-                                     # kinematic estimate's prior, and carried into the graph:
-                                     # a song's bars count the octave that fits it
+    tempo_prior_bpm: [150, 220]      # plausible tempo range for the kinematic estimate
+    style_tempo_bpm: [160, 220]      # the style's danced tempo range (BPM of the counted beat),
+                                     # carried into the graph: a song tracked at half or twice
+                                     # a tempo in it gets its bars counted at that tempo
     tempo_bpm: 120                   # fixed tempo: bars from it instead of an estimate
     first_downbeat_s: 0.0            # with tempo_bpm: where the first bar starts (default:
                                      # on the kinematic beats, or 0 without a steady beat)
@@ -202,6 +203,7 @@ class Manifest(_Strict):
     scale: float = Field(default=1.0, gt=0)
     style: str | None = None
     tempo_prior_bpm: list[float] | None = None
+    style_tempo_bpm: list[float] | None = None
     tempo_bpm: float | None = Field(default=None, gt=0, le=1000)
     first_downbeat_s: float | None = Field(default=None, ge=0)
     steady_beat: bool = True
@@ -209,7 +211,7 @@ class Manifest(_Strict):
     partners: list[list[str]] = Field(default_factory=list)
     clips: dict[str, ClipManifest] = Field(default_factory=dict)
 
-    _range = field_validator("tempo_prior_bpm")(_check_range)
+    _range = field_validator("tempo_prior_bpm", "style_tempo_bpm")(_check_range)
 
     @field_validator("partners")
     @classmethod
@@ -799,6 +801,7 @@ def import_dataset(
         "fps_reason": m.fps_reason,
         "scale": m.scale,
         "tempo_prior_bpm": m.tempo_prior_bpm,
+        "style_tempo_bpm": m.style_tempo_bpm,
         "skeleton": skeleton.to_dict(),
         "clips": [c.to_dict() for c in rows],
         "bars": [b.to_dict() for b in bars],
@@ -1055,6 +1058,7 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
                     "fps_reason",
                     "scale",
                     "tempo_prior_bpm",
+                    "style_tempo_bpm",
                     "failed",
                     "excluded",
                     "warnings",

@@ -239,7 +239,7 @@ def test_dataset_build_cli_prints_counts_and_stores_a_version(demo_store, capsys
         "version": ds.version,
         "licence": ds.licence,
         "acknowledgement": ds.meta.get("acknowledgement"),
-        "tempo_prior_bpm": None,  # the demo library declares no style tempo range
+        "style_tempo_bpm": None,  # the demo library declares no style tempo range
     }
     assert g.manifest["params"]["threshold"] == 15.0
     assert [n for n, k in zip(g.node_ids, g.node_kind, strict=True) if k == 0] == ds.node_ids()

@@ -123,7 +123,7 @@ def test_synthesize_on_a_rig(setup, capsys, tmp_path: Path):
 
 
 def test_a_dataset_style_tempo_range_sets_the_octave_of_the_song_bars(setup, capsys, tmp_path):
-    """A dataset whose manifest declares its style's tempo range (``tempo_prior_bpm``) carries it
+    """A dataset whose manifest declares its style's tempo range (``style_tempo_bpm``) carries it
     into its graph; a song at half that tempo is then danced on bars counted at twice the
     tracked tempo, and the timeline says so. The same song against the same library without the
     range (the ``setup`` store) keeps the tracked tempo (``test_synthesize_writes_dance_files``)."""
@@ -136,7 +136,7 @@ def test_a_dataset_style_tempo_range_sets_the_octave_of_the_song_bars(setup, cap
     lib = write_demo_library(tmp_path / "lib")
     manifest = json.loads((lib / "manifest.json").read_text())
     store = FileStore(tmp_path / "store")
-    import_dataset(lib, "demo", store, {**manifest, "tempo_prior_bpm": [220, 270]})
+    import_dataset(lib, "demo", store, {**manifest, "style_tempo_bpm": [220, 270]})
     build_graph(load_dataset(store, "demo"), store)
     assert load_current(store, "demo").tempo_range == (220.0, 270.0)
 

@@ -316,6 +316,9 @@ def test_manifest_errors_name_the_field(demo_dir, demo_manifest, tmp_path):
         parse_manifest({"tempo_prior_bpm": [200, 100]})
     assert err.value.field == "tempo_prior_bpm"
     with pytest.raises(DanceGraphError) as err:
+        parse_manifest({"style_tempo_bpm": [150]})
+    assert err.value.field == "style_tempo_bpm"
+    with pytest.raises(DanceGraphError) as err:
         parse_manifest({"clips": {"a": {"signatures": ["0000002"]}}})
     assert err.value.field.startswith("clips.a.signatures")
     for bad in ([["a", "b", "c"]], [["a", "a"]]):
@@ -357,6 +360,7 @@ def test_shared_manifests_are_valid():
     salsa = parse_manifest(load_manifest(MANIFESTS / "cmu-salsa.yaml"))
     assert salsa.fps == 60 and salsa.scale == 1.0 and salsa.style == "salsa"
     assert salsa.tempo_prior_bpm == [150, 220] and salsa.fps_reason
+    assert salsa.style_tempo_bpm is None  # songs keep the tracked octave (docs/music.md)
     modern = parse_manifest(load_manifest(MANIFESTS / "cmu-modern.yaml"))
     assert modern.scale == pytest.approx(0.056444) and modern.fps == 120
     assert modern.steady_beat is False and modern.tempo_bpm

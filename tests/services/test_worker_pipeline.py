@@ -25,7 +25,7 @@ def _ranged_demo(store: ObjectStore, root: Path, name: str = "demo") -> None:
     """The demo library imported as ``name`` with the style range ``STYLE``, its graph built."""
     lib = write_demo_library(root / "lib")
     manifest = json.loads((lib / "manifest.json").read_text())
-    import_dataset(lib, name, store, {**manifest, "tempo_prior_bpm": STYLE})
+    import_dataset(lib, name, store, {**manifest, "style_tempo_bpm": STYLE})
     build_graph(load_dataset(store, name), store)
 
 
