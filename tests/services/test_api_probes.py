@@ -331,7 +331,7 @@ def test_a_corrupt_flac_fails_naming_the_uploaded_file(tmp_path: Path):
         assert "Studio Take 3.flac" in exc.message and sha not in exc.message
         assert exc.field == "audio"
     else:  # decoded around the damage
-        assert analysis["duration_s"] > 20
+        assert analysis.duration_s > 20
 
 
 def test_an_unreachable_object_store_is_503_and_keeps_nothing(
