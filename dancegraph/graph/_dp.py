@@ -169,6 +169,15 @@ def _reused(recent, s, mirror_of, q):
     return False
 
 
+@njit(cache=True, inline="always")
+def _push_row(out, s, q, recent, i):
+    """Row s of ``out``: node q, then row i of ``recent`` (the predecessor state's last
+    chain-step nodes) without its oldest entry."""
+    out[s, 0] = q
+    for j in range(1, out.shape[1]):
+        out[s, j] = recent[i, j - 1]
+
+
 @njit(cache=True, fastmath=True, inline="always")
 def _sq_dist(x, y):
     s = np.float32(0.0)
@@ -442,9 +451,7 @@ def _pull(lo, hi, unary_v, g, src_best, src_state, w_edge, cost, cur, n_slot, re
             cur[q, 0] = arg
             n_slot[q] = 1
             if window > 0:
-                rec_out[q, 0] = q
-                for j in range(1, window):
-                    rec_out[q, j] = rec[arg, j - 1]
+                _push_row(rec_out, q, q, rec, arg)
 
 
 @njit(cache=True)
@@ -452,14 +459,9 @@ def _shift_recent(lo, hi, n_slot, cur, recent, out):
     """Rows of ``out`` for the states of nodes lo..hi-1 (``cur (N, slots)`` their predecessor
     states): the node, then the predecessor's row of ``recent`` without its oldest entry."""
     slots = cur.shape[1]
-    window = recent.shape[1]
     for q in range(lo, hi):
         for k in range(n_slot[q]):
-            s = q * slots + k
-            i = cur[q, k]
-            out[s, 0] = q
-            for j in range(1, window):
-                out[s, j] = recent[i, j - 1]
+            _push_row(out, q * slots + k, q, recent, cur[q, k])
 
 
 @njit(cache=True, parallel=True)
