@@ -510,7 +510,9 @@ def _add_eval(sub) -> None:
             )
         parsed = _read_spec(args.spec, dataset=args.dataset)
         graph = open_graph(store, args.dataset)
-        songs = [load_song(a, graph=graph) for a in args.audio]  # bad audio: before the library
+        songs = [
+            load_song(a, graph=graph, spec=parsed) for a in args.audio
+        ]  # bad audio: before the library
         lib = load_library(graph, load_dataset(store, args.dataset))
         metrics = evaluate(
             songs,

@@ -483,12 +483,12 @@ def _audio_provenance(path: Path) -> dict:
     return {"file": path.name, "sha256": file_sha256(path)}
 
 
-def style_tempo_range(spec: Spec, graph: MotionGraph | None) -> tuple[float, float] | None:
+def style_tempo_range(spec: Spec | None, graph: MotionGraph | None) -> tuple[float, float] | None:
     """The dance style's tempo range (lo, hi) BPM a song is analysed in for ``spec`` on
     ``graph`` (its bars then count the octave that fits it, ``music.analysis.analyze``): the
     spec's ``tempo_range``, else the one the graph's dataset declares
     (``MotionGraph.tempo_range``), else None (no graph, or neither declares one)."""
-    if spec.tempo_range is not None:
+    if spec is not None and spec.tempo_range is not None:
         return (spec.tempo_range[0], spec.tempo_range[1])
     return graph.tempo_range if graph is not None else None
 

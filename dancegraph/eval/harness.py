@@ -43,7 +43,7 @@ from dancegraph.motion.features import joint_speed, kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import resample
 from dancegraph.motion.skeleton import Motion
-from dancegraph.render import to_json_types
+from dancegraph.render import style_tempo_range, to_json_types
 from dancegraph.rhythm.signatures import COMMON_SIGNATURES
 from dancegraph.spec import Spec
 
@@ -595,17 +595,22 @@ def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
 # entry points
 
 
-def load_song(path: str | Path, analysis=None, graph: MotionGraph | None = None) -> Song:
-    """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats; with
-    ``graph``, count the octave of its style tempo range (``MotionGraph.tempo_range``) as
-    ``synthesize`` does, and add its learned models' music terms
+def load_song(
+    path: str | Path,
+    analysis=None,
+    graph: MotionGraph | None = None,
+    spec: Spec | None = None,
+) -> Song:
+    """Analyse a song (unless ``analysis`` is given) and find librosa's percussive beats; count
+    the octave of the style tempo range of ``spec`` and ``graph`` as ``synthesize`` does
+    (``render.style_tempo_range``); with ``graph``, add its learned models' music terms
     (``embed.learned.add_music_terms``)."""
     from dancegraph.embed.learned import add_music_terms
     from dancegraph.music.analysis import analyze
     from dancegraph.music.decode import load_audio
 
     if analysis is None:
-        analysis = analyze(path, tempo_range=graph.tempo_range if graph is not None else None)
+        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph))
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)

@@ -163,3 +163,11 @@ def test_a_dataset_style_tempo_range_sets_the_octave_of_the_song_bars(setup, cap
     capsys.readouterr()
     timeline = json.loads((tmp_path / "own" / "timeline.json").read_text())
     assert timeline["song"]["grid_octave"] == "x1" and timeline["song"]["tempo_bpm"] < 140
+    # `dancegraph eval` analyses its songs by the same rule (render.style_tempo_range)
+    from dancegraph.eval.harness import load_song
+    from dancegraph.spec import parse_spec
+
+    graph = load_current(store, "demo")
+    assert load_song(wav, graph=graph).analysis.grid_octave == "x2"
+    own = parse_spec({"tempo_range": [100, 140]}, dataset="demo")
+    assert load_song(wav, graph=graph, spec=own).analysis.grid_octave == "x1"
