@@ -143,9 +143,11 @@ def anchor_costs(graph: MotionGraph) -> np.ndarray:
     path pays the offset once per bar, so it changes no choice. Why: the renderer lands a
     node's beats on the song's, so its stops land on the song's beats only as far as they sit
     on its own."""
-    if "anchoring" not in graph.arrays or ANCHOR_WEIGHT == 0 or graph.n_nodes == 0:
-        return np.zeros(graph.n_nodes)
-    anchoring = np.asarray(graph.anchoring, dtype=np.float64)
+    anchoring = getattr(graph, "anchoring", None)
+    n_nodes = len(graph.signature)
+    if anchoring is None or ANCHOR_WEIGHT == 0 or n_nodes == 0:
+        return np.zeros(n_nodes)
+    anchoring = np.asarray(anchoring, dtype=np.float64)
     return ANCHOR_WEIGHT * (anchoring.max() - anchoring)
 
 
