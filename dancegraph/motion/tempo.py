@@ -57,6 +57,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
+from dancegraph.motion.contacts import point_contacts, step_onsets
 from dancegraph.rhythm.signatures import N_SLOTS
 
 #: Tempo range assumed when neither the manifest nor the caller gives one (BPM): the common
@@ -64,14 +65,8 @@ from dancegraph.rhythm.signatures import N_SLOTS
 DEFAULT_PRIOR_BPM: tuple[float, float] = (70.0, 160.0)
 #: Bar harmonics whose Fourier sums are kept (k · tempo / 240 Hz).
 N_HARMONICS = 8
-#: Sign of each ``step_signals`` channel as activity: speeds and lift rise with motion, the
-#: kinematic-beat envelope rises at pauses.
-CHANNEL_SIGNS: tuple[float, ...] = (1.0, 1.0, 1.0, -1.0)
 #: Column of ``step_signals`` holding the summed foot speed.
 FEET_CHANNEL = 1
-#: The kinematic beats place the downbeat when the pause channel holds at least this share of
-#: the channel weights; otherwise the feet's bar cycle does.
-PAUSE_SHARE = 0.5
 #: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (set so
 #: that random walks stay below ``STEADY_MIN_CONFIDENCE``: docs/mocap-beats.md).
 CONFIDENCE_RATIO: tuple[float, float] = (0.8, 2.3)
@@ -207,27 +202,32 @@ def event_envelope(times: np.ndarray, n_frames: int, fps: float, sigma_s: float 
 def step_signals(
     body: np.ndarray, feet: np.ndarray, kinematic_beats: np.ndarray, fps: float
 ) -> np.ndarray:
-    """``(F, 4)`` standardised step evidence of a take.
+    """``(F, 5)`` standardised step evidence of a take.
 
     ``body``: ``(F, J, 3)`` world positions (m, Y up) of the trunk and leg joints; ``feet``:
     ``(F, 4, 3)`` left ankle, left toe, right ankle, right toe; ``kinematic_beats``: ``(K,)`` s.
     Columns: mean body joint speed, summed foot-point speed, summed foot lift (per foot the
-    lower of ankle and toe above its 5th height percentile), kinematic-beat envelope. Each is
-    smoothed (25 ms), clipped at its 98th percentile, detrended (2 s) and scaled to unit
-    variance. Raises ``ValueError`` for fewer than 3 frames.
+    lower of ankle and toe above its 5th height percentile), step-onset envelope (the starts
+    of both feet's contacts, ``contacts.point_contacts``), kinematic-beat envelope (always the
+    last column). Each is smoothed (25 ms), clipped at its 98th percentile, detrended (2 s)
+    and scaled to unit variance. Raises ``ValueError`` for fewer than 3 frames.
     """
     body = np.asarray(body, dtype=float)
     if body.shape[0] < 3:
         raise ValueError("a take needs at least 3 frames")
+    feet = np.asarray(feet, dtype=float)
+    onsets = event_envelope(
+        step_onsets(point_contacts(feet.reshape(-1, 2, 2, 3), fps), fps), body.shape[0], fps
+    )
     sigma = max(1.0, 0.025 * fps)
     body = gaussian_filter1d(body, sigma, axis=0, mode="nearest")
-    feet = gaussian_filter1d(np.asarray(feet, dtype=float), sigma, axis=0, mode="nearest")
+    feet = gaussian_filter1d(feet, sigma, axis=0, mode="nearest")
     speed = np.linalg.norm(np.gradient(body, axis=0), axis=-1).mean(axis=1) * fps
     foot_speed = np.linalg.norm(np.gradient(feet, axis=0), axis=-1).sum(axis=1) * fps
     height = feet[..., 1] - np.percentile(feet[..., 1], 5, axis=0)
     lift = np.minimum(height[:, 0::2], height[:, 1::2]).sum(axis=1)
     pauses = event_envelope(kinematic_beats, body.shape[0], fps)
-    return np.stack([_standardise(s, fps) for s in (speed, foot_speed, lift, pauses)], axis=1)
+    return np.stack([_standardise(s, fps) for s in (speed, foot_speed, lift, onsets, pauses)], axis=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -421,7 +421,10 @@ def section_phase(
     a tie.
     """
     coef = _coefficients(signals, fps, start, np.array([tempo]))[0]  # (K, C)
-    act = coef @ (np.asarray(CHANNEL_SIGNS)[: coef.shape[1]] * channels)  # (K,)
+    # activity: every channel rises with motion but the last, the kinematic beats (pauses)
+    signs = np.ones(coef.shape[1])
+    signs[-1] = -1.0
+    act = coef @ (signs * channels)  # (K,)
     psi = np.arange(4096) / 4096.0  # phase within the bar
     harmonics = np.arange(1, N_HARMONICS + 1)
     folded = np.real(act[None, :] * np.exp(2j * np.pi * np.outer(psi, harmonics)))
@@ -435,7 +438,7 @@ def section_phase(
     first = t_start - 0.25 * period + ((beat_phase * bar_s - t_start + 0.25 * period) % period)
     cand = first + period * np.arange(4)
     index = np.round((cand / bar_s) % 1.0 * 4096).astype(int) % 4096
-    pauses_lead = bool(channels[-1] >= PAUSE_SHARE * channels.sum())
+    pauses_lead = bool(channels[-1] >= channels[FEET_CHANNEL])
     if pauses_lead:
         # pauses lead: the beat the kinematic beats (the last channel) hit most often, read at
         # every bar but the first and last beat period (a take's ends hold no speed minimum)
