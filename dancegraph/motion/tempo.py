@@ -543,9 +543,10 @@ def estimate_grid(
         if tempo_bpm is None:
             coef = spectra[j] - spectra[i]
             g, prom, med = _prominence(_tempo_score(coef, weights, channels))
+            tempo_channels = step_channels if steps_lead else channels
             if steps_lead:
                 g = int(np.argmax(_tempo_score(coef, step_weights, step_channels)))
-            tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, channels)
+            tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, tempo_channels)
             conf = confidence_from_ratio(prom / max(med, 1e-12))
         else:
             tempo, conf = float(tempo_bpm), 1.0
