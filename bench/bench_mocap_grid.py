@@ -29,7 +29,7 @@ import numpy as np
 
 from dancegraph.motion.dataset import Dataset, import_dataset, load_dataset, load_manifest
 from dancegraph.motion.demo import write_demo_library
-from dancegraph.motion.tempo import nearest_distance, partner_agreement
+from dancegraph.motion.tempo import STEADY_MIN_CONFIDENCE, nearest_distance, partner_agreement
 from dancegraph.paths import REPO_ROOT, shared_dir
 from dancegraph.store import FileStore, ObjectStore
 
@@ -76,12 +76,13 @@ def own_grid_sync(ds: Dataset, rng: np.random.Generator) -> list[tuple[float, ..
 
 
 def grids(ds: Dataset) -> dict[str, tuple]:
-    """clip id → (beats, bar starts, tempo) of a stored dataset."""
+    """clip id → (beats, bar starts, tempo, confidence) of a stored dataset."""
     return {
         c.id: (
             ds.beats(c.id),
             np.array([b.start_s for b in ds.bars if b.clip_id == c.id]),
             c.tempo_bpm,
+            c.tempo_confidence,
         )
         for c in ds.clips
     }
@@ -103,13 +104,15 @@ def salsa_partners(mocap: Path, store: ObjectStore) -> int:
     )
     head = f"{'pair':<12}{'tempo a':>9}{'tempo b':>9}{'diff %':>8}{'offset ms':>11}{'downbeats %':>13}{'shift':>7}  verdict"
     print(head + "\n" + "-" * len(head))
-    n_tempo = n_offset = n_both = n_down = 0
+    n_tempo = n_offset = n_both = n_down = n_steady = n_steady_both = 0
     for a, b in manifest["partners"]:
-        (ba, da, ta), (bb, db, tb) = found[a], found[b]
+        (ba, da, ta, ca), (bb, db, tb, cb) = found[a], found[b]
         r = partner_agreement(ba, da, ta, bb, db, tb)
         ok_t, ok_o = r["tempo_diff_pct"] <= 1.0, r["median_offset_ms"] <= 40.0
         n_tempo, n_offset, n_both = n_tempo + ok_t, n_offset + ok_o, n_both + (ok_t and ok_o)
         n_down += r["downbeat_agreement"] >= 0.8
+        steady = min(ca, cb) >= STEADY_MIN_CONFIDENCE
+        n_steady, n_steady_both = n_steady + steady, n_steady_both + (steady and ok_t and ok_o)
         print(
             f"{a[3:]:<12}{ta:>9.2f}{tb:>9.2f}{r['tempo_diff_pct']:>8.2f}{r['median_offset_ms']:>11.0f}"
             f"{100 * r['downbeat_agreement']:>13.0f}{r['downbeat_shift_beats']:>7}  "
@@ -119,6 +122,9 @@ def salsa_partners(mocap: Path, store: ObjectStore) -> int:
     print(
         f"pairs: tempo within 1 %: {n_tempo}/{n}; median offset <= 40 ms: {n_offset}/{n}; both: "
         f"{n_both}/{n} (target {n}/{n}); downbeats agreeing on >= 80 % of bars: {n_down}/{n}\n"
+        f"pairs whose two takes are both steady (confidence >= {STEADY_MIN_CONFIDENCE}): "
+        f"{n_steady_both}/{n_steady} agree; with a take flagged no_steady_beat: "
+        f"{n_both - n_steady_both}/{n - n_steady} agree\n"
     )
 
     rng = np.random.default_rng(0)
