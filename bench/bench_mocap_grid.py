@@ -7,7 +7,8 @@ kinematic beats (docs/mocap-beats.md).
    40 ms, downbeats agreeing on 80 % of bars).
 2. Each take's kinematic beats on its own grid: phase concentration R (beside R of as many
    uniformly random events) and the share of grid beats with a kinematic beat within 0.1 s
-   (beside the same grid shifted by half a beat).
+   (beside the same grid shifted by half a beat); where the feet land (contact starts) within
+   the grid's beats.
 3. The whole cmu-salsa import with its manifest (partner rows in the report; target: 60 s),
    cmu-modern with its manifest and gridded from its motion, and the generated demo library
    gridded from its motion against its exact annotations.
@@ -27,8 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dancegraph.motion.contacts import foot_points, point_contacts, step_onsets
 from dancegraph.motion.dataset import Dataset, import_dataset, load_dataset, load_manifest
 from dancegraph.motion.demo import write_demo_library
+from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.tempo import STEADY_MIN_CONFIDENCE, nearest_distance, partner_agreement
 from dancegraph.paths import REPO_ROOT, shared_dir
 from dancegraph.store import FileStore, ObjectStore
@@ -49,13 +52,25 @@ def phase_concentration(events: np.ndarray, beats: np.ndarray) -> float:
     return float(abs(np.mean(np.exp(2j * np.pi * phase))))
 
 
+def mean_phase(events: np.ndarray, beats: np.ndarray) -> float:
+    """Circular mean (0 … 1 beat) of the events' phases within the beat intervals."""
+    ev = events[(events >= beats[0]) & (events < beats[-1])]
+    i = np.searchsorted(beats, ev, side="right") - 1
+    phase = (ev - beats[i]) / (beats[i + 1] - beats[i])
+    return float(np.angle(np.mean(np.exp(2j * np.pi * phase))) / (2 * np.pi) % 1.0)
+
+
 def own_grid_sync(ds: Dataset, rng: np.random.Generator) -> list[tuple[float, ...]]:
-    """Per clip: R, R of random events, accuracy, accuracy of the half-beat-shifted grid."""
+    """Per clip: R, R of random events, accuracy, accuracy of the half-beat-shifted grid, and
+    the step onsets' R and circular mean phase (beats after the grid's beat)."""
     rows = []
     for clip in ds.clips:
         beats, kb = ds.beats(clip.id), ds.kinematic_beats(clip.id)
         if len(beats) < 2:
             continue
+        positions, world = forward_kinematics(ds.motion(clip.id))
+        points = foot_points(positions, ds.skeleton, world)
+        onsets = step_onsets(point_contacts(points, clip.fps), clip.fps)
         n = int(np.sum((kb >= beats[0]) & (kb < beats[-1])))
         chance = np.mean(
             [
@@ -70,6 +85,8 @@ def own_grid_sync(ds: Dataset, rng: np.random.Generator) -> list[tuple[float, ..
                 float(chance),
                 float(np.mean(nearest_distance(beats, kb) <= HIT_S)),
                 float(np.mean(nearest_distance(beats[:-1] + half, kb) <= HIT_S)),
+                phase_concentration(onsets, beats),
+                mean_phase(onsets, beats),
             )
         )
     return rows
@@ -137,7 +154,12 @@ def salsa_partners(mocap: Path, store: ObjectStore) -> int:
         f"  phase concentration R        {med[0]:.2f}   chance (as many random events) {med[1]:.2f}"
     )
     print(
-        f"  beats hit within 0.1 s       {med[2]:.2f}   chance (grid shifted half a beat) {med[3]:.2f}\n"
+        f"  beats hit within 0.1 s       {med[2]:.2f}   chance (grid shifted half a beat) {med[3]:.2f}"
+    )
+    middle = int(np.sum((rows[:, 5] >= 0.3) & (rows[:, 5] <= 0.7)))
+    print(
+        f"  step onsets (contact starts): R {med[4]:.2f}; their mean phase lies 0.3-0.7 beat "
+        f"after the grid's beat in {middle}/{len(rows)} takes (median {med[5]:.2f})\n"
     )
     return n_both
 
