@@ -5,6 +5,7 @@ kinematic beats (docs/mocap-beats.md).
    so that every take is gridded from its own motion only; per partner pair: tempi, tempo
    difference, median beat offset, downbeat agreement (target: 14 of 14 pairs within 1 % and
    40 ms, downbeats agreeing on 80 % of bars).
+   The same with each take cut in halves, each half gridded alone.
 2. Each take's kinematic beats on its own grid: phase concentration R (beside R of as many
    uniformly random events) and the share of grid beats with a kinematic beat within 0.1 s
    (beside the same grid shifted by half a beat); where the feet land (contact starts) within
@@ -29,10 +30,25 @@ from pathlib import Path
 import numpy as np
 
 from dancegraph.motion.contacts import foot_points, point_contacts, step_onsets
-from dancegraph.motion.dataset import Dataset, import_dataset, load_dataset, load_manifest
+from dancegraph.motion.dataset import (
+    STEP_BODY_JOINTS,
+    STEP_FOOT_JOINTS,
+    Dataset,
+    import_dataset,
+    load_dataset,
+    load_manifest,
+)
 from dancegraph.motion.demo import write_demo_library
-from dancegraph.motion.fk import forward_kinematics
-from dancegraph.motion.tempo import STEADY_MIN_CONFIDENCE, nearest_distance, partner_agreement
+from dancegraph.motion.fk import canonical_positions, forward_kinematics
+from dancegraph.motion.tempo import (
+    STEADY_MIN_CONFIDENCE,
+    BeatGrid,
+    GridParams,
+    estimate_grid,
+    nearest_distance,
+    partner_agreement,
+    step_signals,
+)
 from dancegraph.paths import REPO_ROOT, shared_dir
 from dancegraph.store import FileStore, ObjectStore
 
@@ -164,6 +180,46 @@ def salsa_partners(mocap: Path, store: ObjectStore) -> int:
     return n_both
 
 
+def half_takes(store: ObjectStore, manifest: dict) -> None:
+    """Partner agreement on each take's first and second half, each half gridded alone: the
+    same takes over other spans than the whole-take numbers the rules were chosen on."""
+    pairs = manifest["partners"]
+    params = GridParams(prior_bpm=tuple(manifest["tempo_prior_bpm"]))
+    halves: dict[str, list[BeatGrid]] = {}
+    for who in ("60", "61"):
+        ds = load_dataset(store, f"salsa-{who}")
+        for clip in ds.clips:
+            positions, world = forward_kinematics(ds.motion(clip.id))
+            signals = step_signals(
+                canonical_positions(ds.skeleton, positions, world, STEP_BODY_JOINTS),
+                canonical_positions(ds.skeleton, positions, world, STEP_FOOT_JOINTS),
+                ds.kinematic_beats(clip.id),
+                clip.fps,
+            )
+            n = len(signals) // 2
+            halves[clip.id] = [
+                estimate_grid(part, clip.fps, params) for part in (signals[:n], signals[n:])
+            ]
+    counts = []
+    for half in (0, 1):
+        n_tempo = n_both = n_down = 0
+        for a, b in pairs:
+            ga, gb = halves[a][half], halves[b][half]
+            r = partner_agreement(
+                ga.beats, ga.bars[:, 0], ga.tempo_bpm, gb.beats, gb.bars[:, 0], gb.tempo_bpm
+            )
+            ok_t = r["tempo_diff_pct"] <= 1.0
+            n_tempo, n_both = n_tempo + ok_t, n_both + (ok_t and r["median_offset_ms"] <= 40.0)
+            n_down += r["downbeat_agreement"] >= 0.8
+        counts.append((n_both, n_tempo, n_down))
+    (b1, t1, d1), (b2, t2, d2) = counts
+    print(
+        f"takes cut in halves, each half gridded alone: pairs agreeing {b1} + {b2} of "
+        f"{2 * len(pairs)} (tempo within 1 %: {t1} + {t2}; downbeats on >= 80 % of bars: "
+        f"{d1} + {d2})\n"
+    )
+
+
 def whole_imports(mocap: Path, store: ObjectStore) -> float:
     total = 0.0
     for name in ("cmu-salsa", "cmu-modern"):
@@ -229,6 +285,7 @@ def main() -> int:
             return 0
         print()
         salsa_partners(mocap, store)
+        half_takes(store, load_manifest(MANIFESTS / "cmu-salsa.yaml"))
         total = whole_imports(mocap, store)
     verdict = "ok" if total <= TARGET_S else "OVER TARGET"
     print(f"salsa + modern imports: {total:.1f} s, target <= {TARGET_S:.0f} s: {verdict}")
