@@ -11,9 +11,9 @@ following it. The steps, over one :class:`GridParams`:
 1. ``step_signals``: five standardised evidence channels: mean speed of the trunk and leg
    joints, summed speed of the foot points (ankles, toes), summed foot lift, the step onsets
    (both feet's contact starts) and the kinematic-beat envelope (pauses of the whole body,
-   always the last channel). The arms enter only through the
-   kinematic beats: partners of a couple dance hold hands, and arm speed itself would make two
-   partners' grids agree through the hands rather than through the music.
+   always the last channel). The arms enter only through the kinematic beats: partners of a
+   couple dance hold hands, and arm speed itself would make two partners' grids agree through
+   the hands rather than through the music.
 2. ``bar_spectra``: for each tempo of a log-spaced grid over the prior, the Fourier sums of
    every channel at the bar harmonics ``k · tempo / 240`` Hz (k = 1 … 8), per one-second block
    on the take's time axis, accumulated: the coherent spectrum of any run of blocks is the
@@ -524,10 +524,13 @@ def estimate_grid(
     tempi = tempo_grid(params.prior_bpm, params.tempo_step)
     spectra = bar_spectra(signals, fps, tempi, block)
     channels = channel_weights(spectra[-1], weights, params.clarity_power)
+    # where the steps lead, the tempo is read at the step harmonics, channels weighted there
     steps_lead = not pauses_lead(channels)
     step_weights = np.zeros(max(params.step_harmonics))
     step_weights[[k - 1 for k in params.step_harmonics]] = 1.0
-    step_channels = channel_weights(spectra[-1], step_weights, params.clarity_power)
+    tempo_channels = (
+        channel_weights(spectra[-1], step_weights, params.clarity_power) if steps_lead else channels
+    )
     if tempo_bpm is None:
         spans = tempo_sections(spectra, tempi, weights, channels, params)
     else:
@@ -543,9 +546,8 @@ def estimate_grid(
         if tempo_bpm is None:
             coef = spectra[j] - spectra[i]
             g, prom, med = _prominence(_tempo_score(coef, weights, channels))
-            tempo_channels = step_channels if steps_lead else channels
             if steps_lead:
-                g = int(np.argmax(_tempo_score(coef, step_weights, step_channels)))
+                g = int(np.argmax(_tempo_score(coef, step_weights, tempo_channels)))
             tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, tempo_channels)
             conf = confidence_from_ratio(prom / max(med, 1e-12))
         else:
