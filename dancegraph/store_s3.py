@@ -13,7 +13,10 @@ names the endpoint clients use for presigned downloads when it differs from the 
   (``If-None-Match: *``); the server decides which of two racing writers wins.
 - Local copies (``local_path``, ``local_dir``) are downloaded once into ``<scratch>/cache/`` and
   reused: only immutable keys are read this way (content-addressed blobs, published result
-  versions, graph versions, model files).
+  versions, graph versions, model files). The cache is bounded (``cache_max_bytes``,
+  ``DANCEGRAPH_S3_CACHE_MAX_BYTES``): after each download the least recently used copies are
+  evicted (``trim_cache``), never one used within ``CACHE_KEEP_S``; an evicted copy is simply
+  downloaded again when next asked for.
 - ``sweep_uploads`` aborts multipart uploads a killed writer left open.
 """
 
@@ -33,6 +36,9 @@ from dancegraph.store import Entry, ObjectStore, StoreUnavailableError, check_ke
 MULTIPART_THRESHOLD = 16 * 1024 * 1024  # default; DANCEGRAPH_S3_MULTIPART_THRESHOLD overrides
 MIN_PART = 5 * 1024 * 1024  # S3's smallest part (all but the last)
 _COMPLETE = ".complete"
+CACHE_MAX_BYTES = 20 * 1024**3  # default; DANCEGRAPH_S3_CACHE_MAX_BYTES overrides
+# a local copy used this recently is never evicted: its caller may be about to open it
+CACHE_KEEP_S = 600.0
 
 
 def _client(endpoint_url: str | None = None):
@@ -106,6 +112,8 @@ class S3Store(ObjectStore):
         prefix: str,
         scratch: Path,
         multipart_threshold: int = MULTIPART_THRESHOLD,
+        cache_max_bytes: int = CACHE_MAX_BYTES,
+        cache_keep_s: float = CACHE_KEEP_S,
     ):
         self.bucket = bucket
         self.prefix = prefix.strip("/")
@@ -114,8 +122,11 @@ class S3Store(ObjectStore):
         self.url = f"s3://{bucket}/{self.prefix}".rstrip("/")
         self.scratch = Path(scratch).resolve() / "tmp"
         self.cache = Path(scratch).resolve() / "cache"
+        self.cache_max_bytes = int(cache_max_bytes)
+        self.cache_keep_s = float(cache_keep_s)
         self.client = _client()
         self._lock = threading.Lock()
+        self._trim_lock = threading.Lock()
         self._blob_locks: dict[str, list] = {}  # key -> [lock, holders and waiters]
         public = os.environ.get("DANCEGRAPH_S3_PUBLIC_ENDPOINT_URL", "")
         self._signer = _client(public) if public else self.client
@@ -135,7 +146,8 @@ class S3Store(ObjectStore):
         if not bucket:
             raise ValueError(f"no bucket in store URL {url!r}")
         threshold = int(os.environ.get("DANCEGRAPH_S3_MULTIPART_THRESHOLD") or MULTIPART_THRESHOLD)
-        return cls(bucket, prefix, scratch, threshold)
+        budget = int(os.environ.get("DANCEGRAPH_S3_CACHE_MAX_BYTES") or CACHE_MAX_BYTES)
+        return cls(bucket, prefix, scratch, threshold, budget)
 
     def _k(self, key: str) -> str:
         check_key(key)
@@ -258,7 +270,11 @@ class S3Store(ObjectStore):
     def local_path(self, key: str) -> Path:
         target = self.cache / check_key(key)
         if target.is_file():
-            return target
+            try:
+                os.utime(target)  # its recency, for trim_cache
+                return target
+            except FileNotFoundError:  # evicted by another process just now: download again
+                pass
         target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".part-")
         os.close(fd)
@@ -271,13 +287,54 @@ class S3Store(ObjectStore):
             raise
         finally:
             Path(tmp).unlink(missing_ok=True)
+        self.trim_cache(spare=target)
         return target
+
+    def trim_cache(self, spare: Path | None = None) -> int:
+        """Evict the least recently used local copies until the cache holds at most
+        ``cache_max_bytes``; copies used within ``cache_keep_s``, and ``spare`` (the copy just
+        made), stay even above the budget.
+        Evicting a file of a ``local_dir`` folder first removes that folder's completeness
+        marker, so the next ``local_dir`` downloads what is missing. Returns the bytes freed.
+        Why: a worker reads every song and graph version it is given; unbounded, its disk fills.
+        """
+        with self._trim_lock:
+            files = []
+            for path in self.cache.rglob("*"):
+                if path.name == _COMPLETE or path.name.startswith(".part-"):
+                    continue
+                try:
+                    st = path.stat()
+                except FileNotFoundError:
+                    continue
+                if path.is_file():
+                    files.append((st.st_mtime, st.st_size, path))
+            total = sum(size for _, size, _ in files)
+            freed = 0
+            recent = time.time() - self.cache_keep_s
+            for mtime, size, path in sorted(files, key=lambda f: f[0]):
+                if total - freed <= self.cache_max_bytes or mtime >= recent:
+                    break
+                if path == spare:
+                    continue
+                for folder in path.parents:
+                    if folder == self.cache or self.cache not in folder.parents:
+                        break
+                    (folder / _COMPLETE).unlink(missing_ok=True)
+                path.unlink(missing_ok=True)
+                freed += size
+            return freed
 
     @_translated
     def local_dir(self, prefix: str) -> Path:
         folder = self.cache / check_key(prefix)
         if (folder / _COMPLETE).is_file():
-            return folder
+            try:
+                for path in folder.rglob("*"):
+                    os.utime(path)  # its recency, for trim_cache
+                return folder
+            except FileNotFoundError:  # a member evicted by another process: complete it again
+                pass
         found = list(self.entries(prefix))
         for entry in found:
             self.local_path(entry.key)

@@ -121,3 +121,40 @@ def test_s3_large_files_go_up_in_parts_and_downloads_are_presigned(s3_url: str, 
     client.create_multipart_upload(Bucket=store.bucket, Key="store/tmp-upload")
     assert store.sweep_uploads(older_than_s=60) == 1
     assert client.list_multipart_uploads(Bucket=store.bucket).get("Uploads", []) == []
+
+
+def test_s3_local_copies_are_bounded_least_recently_used_first(s3_url: str, tmp_path: Path):
+    """The local cache of an S3 store keeps at most its budget: the least recently used copies
+    go first (never one used within the keep window); an evicted copy, or a folder that lost a
+    member, is downloaded again when next asked for."""
+    from dancegraph.store_s3 import S3Store
+
+    base = S3Store.from_url(s3_url, tmp_path / "scratch")
+    store = S3Store(
+        base.bucket, base.prefix, tmp_path / "scratch", cache_max_bytes=2500, cache_keep_s=0.0
+    )
+    data = {f"blobs/b{i}": bytes([i]) * 1000 for i in range(3)}
+    for key, value in data.items():
+        store.put_bytes(key, value)
+    store.put_bytes("graphs/g/1/nodes.bin", b"n" * 1000)
+    a = store.local_path("blobs/b0")
+    os.utime(a, (time.time() - 300, time.time() - 300))
+    b = store.local_path("blobs/b1")
+    os.utime(b, (time.time() - 200, time.time() - 200))
+    store.local_path("blobs/b0")  # used again: now the most recent
+    assert store.local_path("blobs/b2").read_bytes() == data["blobs/b2"]
+    assert a.is_file() and not b.is_file()  # b1, least recently used, went to fit 2500 bytes
+    assert store.local_path("blobs/b1").read_bytes() == data["blobs/b1"]  # downloaded again
+    # a folder copy loses its completeness marker with a member, and is completed again
+    folder = store.local_dir("graphs/g/1")
+    for path in store.cache.rglob("*"):
+        if path.is_file():
+            os.utime(path, (time.time() - 100, time.time() - 100))
+    store.cache_max_bytes = 500
+    assert store.trim_cache() > 0
+    assert not (folder / "nodes.bin").is_file() and not (folder / ".complete").exists()
+    store.cache_max_bytes = 2500
+    assert (store.local_dir("graphs/g/1") / "nodes.bin").read_bytes() == b"n" * 1000
+    # within the keep window nothing goes, even above the budget
+    keeping = S3Store(base.bucket, base.prefix, tmp_path / "scratch", cache_max_bytes=0)
+    assert keeping.trim_cache() == 0 and keeping.local_path("blobs/b0").is_file()

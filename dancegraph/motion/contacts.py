@@ -58,6 +58,24 @@ def foot_contacts(
     ``speed_m_s``. Blips and gaps shorter than ``MIN_CONTACT_S`` are removed.
     """
     pts = foot_points(positions, skeleton, world_rotations)  # (F, 2, 2, 3)
+    return point_contacts(pts, fps, height_m=height_m, speed_m_s=speed_m_s)
+
+
+def point_contacts(
+    points: np.ndarray,
+    fps: float,
+    *,
+    height_m: float = CONTACT_HEIGHT_M,
+    speed_m_s: float = CONTACT_SPEED_M_S,
+) -> np.ndarray:
+    """``(F, 2)`` bool: (left, right) foot planted per frame, from ``foot_points`` output.
+
+    ``points``: ``(F, 2, 2, 3)`` world positions (m, Y up) of (left, right) × (ankle, toe).
+    The rule of ``foot_contacts``: a point within ``height_m`` of its own floor level (5th
+    height percentile) and slower than ``speed_m_s`` plants its foot; blips and gaps shorter
+    than ``MIN_CONTACT_S`` are removed.
+    """
+    pts = np.asarray(points, dtype=float)
     n_frames = pts.shape[0]
     height = pts[..., 1]
     floor = np.percentile(height, 5, axis=0)
@@ -76,6 +94,14 @@ def foot_contacts(
             c = binary_closing(contacts[:, side], structure, border_value=0) | contacts[:, side]
             contacts[:, side] = binary_opening(c, structure)
     return contacts
+
+
+def step_onsets(contacts: np.ndarray, fps: float) -> np.ndarray:
+    """``(N,)`` times (s), increasing, at which a foot is planted: the first frame of every
+    contact of either foot after the take's first frame (``contacts``: ``(F, 2)`` bool)."""
+    c = np.asarray(contacts, dtype=bool)
+    starts = c[1:] & ~c[:-1]  # (F - 1, 2)
+    return np.sort(np.nonzero(starts)[0] + 1) / fps
 
 
 def _leg_joints(skeleton: Skeleton) -> np.ndarray:

@@ -8,11 +8,12 @@ to the bar harmonics of a few step signals, coherently over whole sections of th
 gives a sub-frame tempo and phase and averages a dancer's step-to-step jitter out instead of
 following it. The steps, over one :class:`GridParams`:
 
-1. ``step_signals``: four standardised evidence channels: mean speed of the trunk and leg
-   joints, summed speed of the foot points (ankles, toes), summed foot lift, and the
-   kinematic-beat envelope (pauses of the whole body). The arms enter only through the
-   kinematic beats: partners of a couple dance hold hands, and arm speed itself would make two
-   partners' grids agree through the hands rather than through the music.
+1. ``step_signals``: five standardised evidence channels: mean speed of the trunk and leg
+   joints, summed speed of the foot points (ankles, toes), summed foot lift, the step onsets
+   (both feet's contact starts) and the kinematic-beat envelope (pauses of the whole body,
+   always the last channel). The arms enter only through the kinematic beats: partners of a
+   couple dance hold hands, and arm speed itself would make two partners' grids agree through
+   the hands rather than through the music.
 2. ``bar_spectra``: for each tempo of a log-spaced grid over the prior, the Fourier sums of
    every channel at the bar harmonics ``k · tempo / 240`` Hz (k = 1 … 8), per one-second block
    on the take's time axis, accumulated: the coherent spectrum of any run of blocks is the
@@ -25,13 +26,18 @@ following it. The steps, over one :class:`GridParams`:
    ``Σ_k w_k Σ_c v_c |X_ck(T)|``; a split must add ``split_gain`` of the one-section score,
    every section lasts ``min_section_s``, is steady itself and differs from its neighbour by
    ``min_tempo_change`` in tempo.
-5. ``refine_tempo`` and ``section_phase``, per section: the tempo refined within
-   ``refine_span`` of the peak to where the anchor harmonic is most coherent (the step cycle
+5. ``refine_tempo`` and ``section_phase``, per section. Which cue leads (``pauses_lead``):
+   the kinematic beats where their channel is clearer than the feet's, else the steps. Where
+   the steps lead, the tempo is the peak of the ``step_harmonics`` alone (the two-beat step
+   cycle, each channel weighted by its clarity there): the periodicity of a stepping dance
+   that two partners share, while the bar and beat harmonics of one dancer's figures (turns,
+   a lead) are not; where the pauses lead, the peak of the harmonic sum. Either is refined
+   within ``refine_span`` to where the anchor harmonics are most coherent (the step cycle
    that places the beats stays in phase over the section). The beats sit where the folded
-   activity (speeds and lift up, pauses down, each channel by its weight) is lowest at the
-   stronger anchor harmonic (2: the two-beat step cycle, 4: the beat), i.e. pauses on the
-   beat, the convention of kinematic beats. The downbeat, where the pauses hold most of the
-   channel weight: the beat the kinematic beats hit most often (every common rhythm signature
+   activity (speeds, lift and onsets up, pauses down, each channel by its weight) is lowest
+   at the stronger anchor harmonic (2: the two-beat step cycle, 4: the beat), i.e. pauses on
+   the beat, the convention of kinematic beats. The downbeat, where the pauses lead: the
+   beat the kinematic beats hit most often (every common rhythm signature
    has its downbeat slot set; of two that tie within ``downbeat_margin`` of the range, the
    first in the section, which starts on a bar). Where the steps lead: the beat at the low
    point of the feet's bar cycle (their first bar harmonic), the bar-level cue two partners of
@@ -57,6 +63,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
+from dancegraph.motion.contacts import point_contacts, step_onsets
 from dancegraph.rhythm.signatures import N_SLOTS
 
 #: Tempo range assumed when neither the manifest nor the caller gives one (BPM): the common
@@ -64,14 +71,8 @@ from dancegraph.rhythm.signatures import N_SLOTS
 DEFAULT_PRIOR_BPM: tuple[float, float] = (70.0, 160.0)
 #: Bar harmonics whose Fourier sums are kept (k · tempo / 240 Hz).
 N_HARMONICS = 8
-#: Sign of each ``step_signals`` channel as activity: speeds and lift rise with motion, the
-#: kinematic-beat envelope rises at pauses.
-CHANNEL_SIGNS: tuple[float, ...] = (1.0, 1.0, 1.0, -1.0)
 #: Column of ``step_signals`` holding the summed foot speed.
 FEET_CHANNEL = 1
-#: The kinematic beats place the downbeat when the pause channel holds at least this share of
-#: the channel weights; otherwise the feet's bar cycle does.
-PAUSE_SHARE = 0.5
 #: Spectral prominence ratio (peak − median) / median mapped to confidence 0 and 1 (set so
 #: that random walks stay below ``STEADY_MIN_CONFIDENCE``: docs/mocap-beats.md).
 CONFIDENCE_RATIO: tuple[float, float] = (0.8, 2.3)
@@ -96,6 +97,7 @@ class GridParams:
     - ``tempo_step``: relative spacing of the tempo grid (0.0025 = 0.25 %).
     - ``refine_span``: a section's tempo is refined within this share of its grid peak.
     - ``tempo_weights``: weight of bar harmonics k = 1 … len in the tempo score.
+    - ``step_harmonics``: bar harmonics whose peak is the tempo where the steps lead.
     - ``anchor_harmonics``: harmonics whose comb places the beats (the stronger one decides).
     - ``clarity_power``: exponent of a channel's clarity in its weight.
     - ``downbeat_margin``: below this share of the folded range, two beats tie for downbeat.
@@ -110,6 +112,7 @@ class GridParams:
     tempo_step: float = 0.0025
     refine_span: float = 0.0075
     tempo_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
+    step_harmonics: tuple[int, ...] = (2,)
     anchor_harmonics: tuple[int, ...] = (2, 4)
     clarity_power: float = 2.0
     downbeat_margin: float = 0.25
@@ -125,10 +128,10 @@ class GridParams:
             raise ValueError(f"tempo prior must be 0 < lo < hi, got {self.prior_bpm}")
         if not 1 <= len(self.tempo_weights) <= N_HARMONICS:
             raise ValueError(f"tempo_weights: 1 to {N_HARMONICS} harmonics")
-        if not self.anchor_harmonics or any(
-            not 1 <= k <= N_HARMONICS for k in self.anchor_harmonics
-        ):
-            raise ValueError(f"anchor_harmonics: harmonics 1 to {N_HARMONICS}")
+        for name in ("anchor_harmonics", "step_harmonics"):
+            ks = getattr(self, name)
+            if not ks or any(not 1 <= k <= N_HARMONICS for k in ks):
+                raise ValueError(f"{name}: harmonics 1 to {N_HARMONICS}")
         if self.tempo_step <= 0 or self.block_s <= 0 or self.max_sections < 1:
             raise ValueError("tempo_step and block_s must be positive, max_sections at least 1")
 
@@ -207,27 +210,34 @@ def event_envelope(times: np.ndarray, n_frames: int, fps: float, sigma_s: float 
 def step_signals(
     body: np.ndarray, feet: np.ndarray, kinematic_beats: np.ndarray, fps: float
 ) -> np.ndarray:
-    """``(F, 4)`` standardised step evidence of a take.
+    """``(F, 5)`` standardised step evidence of a take.
 
     ``body``: ``(F, J, 3)`` world positions (m, Y up) of the trunk and leg joints; ``feet``:
     ``(F, 4, 3)`` left ankle, left toe, right ankle, right toe; ``kinematic_beats``: ``(K,)`` s.
     Columns: mean body joint speed, summed foot-point speed, summed foot lift (per foot the
-    lower of ankle and toe above its 5th height percentile), kinematic-beat envelope. Each is
-    smoothed (25 ms), clipped at its 98th percentile, detrended (2 s) and scaled to unit
-    variance. Raises ``ValueError`` for fewer than 3 frames.
+    lower of ankle and toe above its 5th height percentile), step-onset envelope (the contact
+    starts of both feet, ``contacts.point_contacts``, 30 ms impulses), kinematic-beat envelope
+    (the last column by contract: ``section_phase`` reads it as the pauses). Each is smoothed
+    (25 ms), clipped at its 98th percentile, detrended (2 s) and scaled to unit variance.
+    Raises ``ValueError`` for fewer than 3 frames.
     """
     body = np.asarray(body, dtype=float)
     if body.shape[0] < 3:
         raise ValueError("a take needs at least 3 frames")
+    feet = np.asarray(feet, dtype=float)
+    planted = point_contacts(feet.reshape(-1, 2, 2, 3), fps)
+    onsets = event_envelope(step_onsets(planted, fps), body.shape[0], fps)
     sigma = max(1.0, 0.025 * fps)
     body = gaussian_filter1d(body, sigma, axis=0, mode="nearest")
-    feet = gaussian_filter1d(np.asarray(feet, dtype=float), sigma, axis=0, mode="nearest")
+    feet = gaussian_filter1d(feet, sigma, axis=0, mode="nearest")
     speed = np.linalg.norm(np.gradient(body, axis=0), axis=-1).mean(axis=1) * fps
     foot_speed = np.linalg.norm(np.gradient(feet, axis=0), axis=-1).sum(axis=1) * fps
     height = feet[..., 1] - np.percentile(feet[..., 1], 5, axis=0)
     lift = np.minimum(height[:, 0::2], height[:, 1::2]).sum(axis=1)
     pauses = event_envelope(kinematic_beats, body.shape[0], fps)
-    return np.stack([_standardise(s, fps) for s in (speed, foot_speed, lift, pauses)], axis=1)
+    return np.stack(
+        [_standardise(s, fps) for s in (speed, foot_speed, lift, onsets, pauses)], axis=1
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,6 +412,13 @@ def refine_tempo(
     return float(tempi[g])
 
 
+def pauses_lead(channels: np.ndarray) -> bool:
+    """Whether the kinematic beats (the last channel) lead a take rather than its steps: their
+    ``channel_weights`` entry (of ``(C,)``) is at least the feet's (``FEET_CHANNEL``). The two
+    are the downbeat's bar cues; the clearer one decides."""
+    return bool(channels[-1] >= channels[FEET_CHANNEL])
+
+
 def section_phase(
     signals: np.ndarray,
     fps: float,
@@ -421,7 +438,9 @@ def section_phase(
     a tie.
     """
     coef = _coefficients(signals, fps, start, np.array([tempo]))[0]  # (K, C)
-    act = coef @ (np.asarray(CHANNEL_SIGNS)[: coef.shape[1]] * channels)  # (K,)
+    signs = np.ones(coef.shape[1])
+    signs[-1] = -1.0  # every channel rises with motion but the last, the pauses
+    act = coef @ (signs * channels)  # (K,)
     psi = np.arange(4096) / 4096.0  # phase within the bar
     harmonics = np.arange(1, N_HARMONICS + 1)
     folded = np.real(act[None, :] * np.exp(2j * np.pi * np.outer(psi, harmonics)))
@@ -435,8 +454,8 @@ def section_phase(
     first = t_start - 0.25 * period + ((beat_phase * bar_s - t_start + 0.25 * period) % period)
     cand = first + period * np.arange(4)
     index = np.round((cand / bar_s) % 1.0 * 4096).astype(int) % 4096
-    pauses_lead = bool(channels[-1] >= PAUSE_SHARE * channels.sum())
-    if pauses_lead:
+    lead = pauses_lead(channels)
+    if lead:
         # pauses lead: the beat the kinematic beats (the last channel) hit most often, read at
         # every bar but the first and last beat period (a take's ends hold no speed minimum)
         edge = period * fps
@@ -453,7 +472,7 @@ def section_phase(
     order = np.argsort(level)
     spread = float(level.max() - level.min())
     clarity = float(level[order[1]] - level[order[0]]) / spread if spread > 0 else 0.0
-    if pauses_lead and clarity < params.downbeat_margin:
+    if lead and clarity < params.downbeat_margin:
         # hit counts tie: the earliest of the tied beats (a section starts on a bar)
         down = int(np.flatnonzero(level - level[order[0]] <= params.downbeat_margin * spread)[0])
         return float(first), down, 0.0
@@ -505,6 +524,13 @@ def estimate_grid(
     tempi = tempo_grid(params.prior_bpm, params.tempo_step)
     spectra = bar_spectra(signals, fps, tempi, block)
     channels = channel_weights(spectra[-1], weights, params.clarity_power)
+    # where the steps lead, the tempo is read at the step harmonics, channels weighted there
+    steps_lead = not pauses_lead(channels)
+    step_weights = np.zeros(max(params.step_harmonics))
+    step_weights[[k - 1 for k in params.step_harmonics]] = 1.0
+    tempo_channels = (
+        channel_weights(spectra[-1], step_weights, params.clarity_power) if steps_lead else channels
+    )
     if tempo_bpm is None:
         spans = tempo_sections(spectra, tempi, weights, channels, params)
     else:
@@ -518,8 +544,11 @@ def estimate_grid(
         f0, f1 = i * block, min(n, j * block)
         seg = signals[f0:f1]
         if tempo_bpm is None:
-            g, prom, med = _prominence(_tempo_score(spectra[j] - spectra[i], weights, channels))
-            tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, channels)
+            coef = spectra[j] - spectra[i]
+            g, prom, med = _prominence(_tempo_score(coef, weights, channels))
+            if steps_lead:
+                g = int(np.argmax(_tempo_score(coef, step_weights, tempo_channels)))
+            tempo = refine_tempo(seg, fps, f0, float(tempi[g]), params, tempo_channels)
             conf = confidence_from_ratio(prom / max(med, 1e-12))
         else:
             tempo, conf = float(tempo_bpm), 1.0

@@ -26,9 +26,12 @@ The bar rule (a graph node is one 4-beat bar of dance, DESIGN.md §4):
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, field
+from functools import lru_cache
 from math import gcd
+from pathlib import Path
 
 import numpy as np
 
@@ -278,6 +281,31 @@ def phrase_unit(meter: int) -> int:
     cycle = 4 * meter // gcd(4, meter)
     bars = cycle // BEATS_PER_BAR
     return bars if 2 <= bars <= 8 else 4
+
+
+@lru_cache(maxsize=1)
+def analysis_version() -> str:
+    """12 hex digits naming the code and the models that make an analysis.
+
+    The sha256 over the source files of ``dancegraph.music`` and ``dancegraph.rhythm`` (sorted
+    by name) and the BeatNet weights in use: their pinned hashes where all three files are
+    present, ``librosa`` where they are missing and the tracker falls back. Computed once per
+    process. Why: a stored analysis is reusable only by the code that made it; callers that
+    cache analyses (the worker's object-store cache) key them by this, so a deployment with
+    changed analysis code, or with the weights newly installed, never serves an old result.
+    """
+    from dancegraph.music import weights
+
+    package = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for folder in ("music", "rhythm"):
+        for source in sorted((package / folder).glob("*.py")):
+            digest.update(f"{folder}/{source.name}\0".encode())
+            digest.update(source.read_bytes())
+    present = all(weights.weight_path(m).is_file() for m in (1, 2, 3))
+    models = sorted(weights.FILE_SHA256.values()) if present else ["librosa"]
+    digest.update("\0".join(models).encode())
+    return digest.hexdigest()[:12]
 
 
 def analyze(

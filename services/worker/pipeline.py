@@ -2,7 +2,7 @@
 
 Each stage is idempotent and leaves nothing half-written:
 
-- analyze: cached by the upload's sha256 and the style tempo range (the spec's, else the one
+- analyze: cached by the analysis code's version, the upload's sha256 and the style tempo range (the spec's, else the one
   the dataset's graph declares: ``style_tempo_range``; the bars count the octave that fits it)
   at ``analysis_key`` (the same song is analysed once per range, whoever asked); written
   atomically by the object store.
@@ -33,7 +33,7 @@ from pathlib import Path
 
 from dancegraph.errors import AudioError, DanceGraphError
 from dancegraph.graph.search import SearchResult
-from dancegraph.music.analysis import MusicAnalysis
+from dancegraph.music.analysis import MusicAnalysis, analysis_version
 from dancegraph.spec import Spec, parse_spec
 from dancegraph.store import ObjectStore
 from services import jobs
@@ -65,12 +65,15 @@ def object_store(settings: Settings | None = None) -> ObjectStore:
 
 
 def analysis_key(audio_sha256: str, tempo_range: tuple[float, float] | None = None) -> str:
-    """Object-store key of the cached analysis of the song with this sha256: ``analysis/<sha256>``
-    ``.json``, or ``-<lo>-<hi>bpm.json`` for the analysis counted in a style tempo range."""
+    """Object-store key of the cached analysis of the song with this sha256:
+    ``analysis/<version>/<sha256>.json``, or ``-<lo>-<hi>bpm.json`` for the analysis counted in
+    a style tempo range; ``<version>`` is ``music.analysis.analysis_version()``, so analyses made
+    by other analysis code or models are never read back."""
+    folder = f"analysis/{analysis_version()}"
     if tempo_range is None:
-        return f"analysis/{audio_sha256}.json"
+        return f"{folder}/{audio_sha256}.json"
     lo, hi = tempo_range
-    return f"analysis/{audio_sha256}-{lo:g}-{hi:g}bpm.json"
+    return f"{folder}/{audio_sha256}-{lo:g}-{hi:g}bpm.json"
 
 
 # --- stages ---------------------------------------------------------------------------------

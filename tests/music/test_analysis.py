@@ -11,6 +11,7 @@ from dancegraph.cli import main
 from dancegraph.errors import AudioError
 from dancegraph.music.analysis import (
     MusicAnalysis,
+    analysis_version,
     analyze,
     fit_tempo_range,
     four_beat_bars,
@@ -211,3 +212,21 @@ def test_array_input_int16_stereo_other_rate(analysed):
     assert abs(b.duration_s - 20.0) < 0.01 and b.meter == a.meter
     assert abs(b.tempo_bpm - 120) < 3
     assert np.allclose(b.downbeats[:5], a.downbeats[:5], atol=0.03)
+
+
+def test_analysis_version_names_the_models_in_use(tmp_path, monkeypatch):
+    """The cache version is a stable fingerprint, and an analysis made without the BeatNet
+    weights (the librosa fallback) gets another version than one made with them."""
+    with_weights, without = tmp_path / "weights", tmp_path / "none"
+    with_weights.mkdir()
+    without.mkdir()
+    for m in (1, 2, 3):
+        (with_weights / f"model_{m}_weights.pt").write_bytes(b"")
+    versions = {}
+    for name, folder in (("with", with_weights), ("without", without), ("again", with_weights)):
+        monkeypatch.setenv("DANCEGRAPH_BEATNET_WEIGHTS", str(folder))
+        analysis_version.cache_clear()
+        versions[name] = analysis_version()
+    analysis_version.cache_clear()
+    assert len(versions["with"]) == 12 and int(versions["with"], 16) >= 0
+    assert versions["again"] == versions["with"] != versions["without"]

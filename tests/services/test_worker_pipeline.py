@@ -74,3 +74,15 @@ def test_a_job_dances_on_bars_in_the_datasets_style_range(sqlite_api, tmp_path: 
     song = sqlite_api.get(f"/v1/jobs/{job_id}/timeline.json").json()["song"]
     assert song["grid_octave"] == "x2" and 220 <= song["tempo_bpm"] <= 270
     assert any(w.startswith("grid_octave") for w in song["warnings"])
+
+
+def test_the_analysis_cache_key_carries_the_analysis_version():
+    """Analyses cached by other analysis code or models are never read back: the key names the
+    version (``music.analysis.analysis_version``)."""
+    from dancegraph.music.analysis import analysis_version
+
+    sha = "ab" * 32
+    assert pipeline.analysis_key(sha) == f"analysis/{analysis_version()}/{sha}.json"
+    assert pipeline.analysis_key(sha, (150.0, 220.0)) == (
+        f"analysis/{analysis_version()}/{sha}-150-220bpm.json"
+    )

@@ -49,7 +49,7 @@ BVH_SPEC = {"dataset": DATASET, "alternatives": 2, "output": {"formats": ["bvh"]
 
 
 def _seed_analysis(store, wav: Path) -> None:
-    """Analyse ``wav`` once into the store's cache (``analysis/<sha256>.json``), as a job would."""
+    """Analyse ``wav`` once into the store's cache (``pipeline.analysis_key``), as a job would."""
     with open(wav, "rb") as fh:
         key, _ = store.put_stream(fh)
     pipeline.analyze(store, key, key.rsplit("/", 1)[-1])
