@@ -700,10 +700,11 @@ def backtrack(back: np.ndarray, final: np.ndarray, slots: int) -> tuple[np.ndarr
 
 
 @njit(cache=True, fastmath=True)
-def data_terms(dot, zm_sq, zd_sq, sig_cost, signature, w_style, w_data):
+def data_terms(dot, zm_sq, zd_sq, sig_cost, signature, node_cost, w_style, w_data):
     """C_d in place of ``dot (T, N) float32`` (z_M·z_D): w_data·(w_style‖z_M − z_D‖ +
-    ``sig_cost[t, signature[n]]``), one pass over the matrix (``sig_cost`` already weighted;
-    every value is finite, so fastmath is safe and vectorises the square roots)."""
+    ``sig_cost[t, signature[n]]`` + ``node_cost[n]``), one pass over the matrix (``sig_cost``
+    and ``node_cost (N,)`` already weighted; every value is finite, so fastmath is safe and
+    vectorises the square roots)."""
     ws = np.float32(w_style)
     wd = np.float32(w_data)
     for t in range(dot.shape[0]):
@@ -712,7 +713,9 @@ def data_terms(dot, zm_sq, zd_sq, sig_cost, signature, w_style, w_data):
         zt = zm_sq[t]
         for n in range(dot.shape[1]):
             d2 = zt + zd_sq[n] - np.float32(2.0) * row[n]
-            row[n] = wd * (ws * np.sqrt(max(d2, np.float32(0.0))) + sig[signature[n]])
+            row[n] = wd * (
+                ws * np.sqrt(max(d2, np.float32(0.0))) + sig[signature[n]] + node_cost[n]
+            )
     return dot
 
 

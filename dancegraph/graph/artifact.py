@@ -36,6 +36,11 @@ Arrays (N nodes, E edges, M motion rows, R stored frames, J joints, D transition
   counted from the row's first) of the bar's beats -2 .. 6 (``retime.NODE_BEATS``), what the
   renderer's time-warp and cut choice read (``node_frames``).
 
+Optional: ``anchoring (N,) float32`` how well each node's stops sit on its beats
+(``build.node_anchoring``; the search's rhythm term prefers well-anchored nodes). Graphs built
+before it, from annotated beat grids, or on a skeleton without the canonical joints have none,
+and the search then has no anchoring term; the format stays 2.
+
 Format 2 (this one) stores the ragged frames around each bar; format 1 stored each bar resampled
 to a fixed frame count and is refused with a request to rebuild (``load_graph``).
 """

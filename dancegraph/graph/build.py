@@ -20,7 +20,9 @@ tag ``augmented``.
 A node's rhythm signature is the slot pattern of its own kinematic beats (the dataset's per-bar
 label, ``BarSet.signature``, not snapped to a common signature): a mirror keeps its bar's, a blend
 its upper body's bar's (the pair shares the signature), a shuffle has beats 1–2 of bar a's and
-beats 3–4 of bar b's.
+beats 3–4 of bar b's. Where the takes' beats were read from their motion, each node also
+stores its ``anchoring``, how well its stops sit on its beats (``node_anchoring``), which the
+search's rhythm term prefers.
 Style descriptors, motifs and root displacement read each node sampled beat-aligned
 (``frames_per_bar`` samples, beat k at sample k·F/4).
 
@@ -48,12 +50,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from dancegraph.embed import descriptor
-from dancegraph.errors import ModelFileError
+from dancegraph.errors import DanceGraphError, ModelFileError
 from dancegraph.graph import artifact, choreography
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays
 from dancegraph.motion.mirror import mirror
-from dancegraph.motion.retime import BEAT0, NODE_BEATS, Warp, node_warp
+from dancegraph.motion.retime import BEAT0, NODE_BEATS, Warp, node_warp, sample
 from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.motion.stitch import (
     CUT_BEATS,
@@ -129,7 +131,10 @@ class BarSet:
     -2 .. 6 (``retime.NODE_BEATS``). ``clip (Nb,)`` index into ``clips``; ``bar (Nb,)`` bar index in its take;
     ``signature`` 8-character strings, the slots of the bar's kinematic beats (any pattern);
     ``frames (Nb, 2)`` source frame range [start, end) for
-    provenance.
+    provenance. ``grid_from_motion``: some take's beats were read from its motion (not
+    annotated), so the build stores every node's ``anchoring`` for the search; annotated grids
+    are the takes' music's beats, where the rhythm signatures already say how the dance sits on
+    them (on the beat or syncopated).
     """
 
     skeleton: Skeleton
@@ -144,6 +149,7 @@ class BarSet:
     signature: list[str]
     frames: np.ndarray
     clip_tags: dict[str, list[str]] = field(default_factory=dict)
+    grid_from_motion: bool = True
 
     @property
     def duration(self) -> np.ndarray:
@@ -248,6 +254,65 @@ def accent_anchors(
             ends = [k for k in (a, b) if anchored[k]] or list(np.flatnonzero(anchored))
             anchored[max(ends, key=lambda k: abs(shift[k]))] = False
     return bb.copy()
+
+
+#: the phase concentration the dance's stops should reach on the song's beats (issue 24's R
+#: target): a node's stop counts for its anchoring by how much nearer its beat it sits than that
+ANCHOR_TARGET_R = 0.5
+#: frames per second a node is played at, at a steady tempo, to read its stops (the rate the
+#: evaluation renders at)
+ANCHOR_FPS = 60.0
+
+
+def node_anchoring(skeleton: Skeleton, nodes: _Nodes, index: np.ndarray) -> np.ndarray:
+    """``(len(index),) float32``: how well each node of ``index`` has its stops on its stored
+    beats, which the renderer lands on the song's beats.
+
+    Per node: its stored motion played through its own beat warp (``retime.node_warp``) at a
+    steady tempo, its bar's mean beat, at ``ANCHOR_FPS``, from beat -1 to beat 5 where it has
+    the frames (what the renderer makes of it on an even song); its stops
+    (``rhythm.motion.motion_stops``) at bar phases ``φ_k`` in ``[-0.5, 3.5)`` (the windows of
+    beats 0..3); returns ``Σ_k (cos 2πφ_k − ANCHOR_TARGET_R) / 4``: a stop on a beat adds, one
+    between two beats takes away, most for one on the half beat. Why: the dance's phase
+    concentration R is ``Σ cos 2πφ / K`` over all its stops, so a path whose nodes' sums are
+    positive has R above the target, and the search can reach it by choosing nodes, not by
+    cycling through a few. Raises ``DanceGraphError(code="skeleton_unmapped")`` where the
+    skeleton lacks a canonical joint."""
+    out = np.empty(len(index), dtype=np.float32)
+    for k, i in enumerate(np.asarray(index, dtype=np.int64).tolist()):
+        root, rot = nodes.frames(i)
+        beats = nodes.beats[i]
+        fps = float(nodes.fps[i])
+        beat_s = (beats[BEAT0 + 4] - beats[BEAT0]) / 4.0 / fps
+        phase = np.arange(-1.0, 5.0, 1.0 / (beat_s * ANCHOR_FPS))
+        frames = node_warp(beats)(phase)
+        inside = (frames >= 0.0) & (frames <= len(root) - 1)
+        phase = phase[inside]
+        steady = sample(Motion(skeleton, fps, root, rot), frames[inside])
+        steady.fps = ANCHOR_FPS
+        stops = np.interp(motion_stops(steady) * ANCHOR_FPS, np.arange(phase.size), phase)
+        stops = stops[(stops >= -0.5) & (stops < 3.5)]
+        out[k] = np.sum(np.cos(2.0 * np.pi * stops) - ANCHOR_TARGET_R) / 4.0
+    return out
+
+
+def _anchoring(
+    skeleton: Skeleton, nodes: _Nodes, kind: np.ndarray, mirror_of: np.ndarray
+) -> np.ndarray | None:
+    """``node_anchoring`` of every node ``(N,)``, None where the skeleton lacks a canonical
+    joint (no stops to read: the graph gets no ``anchoring`` array and the search no anchoring
+    term). A mirror copies its bar's: the stop curve weighs left and right alike."""
+    mirrored = np.flatnonzero(kind == 1)
+    own = np.flatnonzero(kind != 1)
+    out = np.empty(nodes.n, dtype=np.float32)
+    try:
+        out[own] = node_anchoring(skeleton, nodes, own)
+    except DanceGraphError as exc:
+        if exc.code != "skeleton_unmapped":
+            raise
+        return None
+    out[mirrored] = out[mirror_of[mirrored]]
+    return out
 
 
 def take_bars(motion: Motion, bar_beats: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
@@ -857,6 +922,7 @@ def build_arrays(
         mirror_of[:nb] = np.arange(nb) + nb
         mirror_of[nb : 2 * nb] = np.arange(nb)
     signature = to_pattern(np.stack([to_bits(x) for x in (y for part in sig_ for y in part)]))
+    anchoring = _anchoring(sk, nodes, kind, mirror_of) if bars.grid_from_motion else None
 
     takes = [np.nonzero(clip == c)[0] for c in range(len(bars.clips))]
     takes = [t[np.argsort(bar[t])] for t in takes if t.size]
@@ -929,6 +995,8 @@ def build_arrays(
         "root": nodes.root.astype(np.float32),
         "rotations": nodes.rotations.astype(np.float32),
     }
+    if anchoring is not None:
+        arrays["anchoring"] = anchoring
     manifest = {
         "clips": list(bars.clips),
         "tags": tag_names,
@@ -972,7 +1040,8 @@ def bars_from_dataset(
     with ``params.accent_anchors`` (the default) the beats of each take whose grid was read from
     its motion (``beat_source`` not ``annotation``) moved onto the moments it stops
     (``accent_anchors`` on ``rhythm.motion.motion_stops``); an annotated grid is where the take's
-    music had its beats, and the take's own relation to them is kept."""
+    music had its beats, and the take's own relation to them is kept. ``grid_from_motion``:
+    whether any take's grid was read from its motion."""
     params = params or BuildParams()
     clips = [c.id for c in dataset.clips]
     by_clip: dict[str, list] = {}
@@ -1006,7 +1075,9 @@ def bars_from_dataset(
         c.id: list(c.flags) + ([f"style:{c.style}"] if getattr(c, "style", None) else [])
         for c in dataset.clips
     }
-    return BarSet.from_takes(dataset.skeleton, clips, takes, tags)
+    bars = BarSet.from_takes(dataset.skeleton, clips, takes, tags)
+    bars.grid_from_motion = any(read_from_motion.values())
+    return bars
 
 
 def build_graph(

@@ -29,6 +29,10 @@ WAYPOINT_WEIGHT = 1.0e5  # per metre beyond a waypoint's tolerance: effectively 
 POSITION_SLOTS = 4  # states kept per node when stage or waypoints are set
 POSITION_CELL = 0.1  # metres (L1) that make two states' root positions different
 RECREATE_WEIGHT = 100.0  # per bar whose motif differs from the reference take's
+#: the rhythm term's cost, in units of G_r, per unit of a node's anchoring below the graph's
+#: best-anchored node's (``anchor_costs``); 0 switches the anchoring off (docs/rendering.md,
+#: Anchoring)
+ANCHOR_WEIGHT = 8.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -106,7 +110,8 @@ def music_inputs(music: dict, graph: MotionGraph | None, analysis=None) -> tuple
 
 
 def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: Spec) -> np.ndarray:
-    """C_d for every bar and node ``(T, N) float32``: λ10·(λ12‖z_M − z_D‖ + λ13 min_k G_r).
+    """C_d for every bar and node ``(T, N) float32``: λ10·(λ12‖z_M − z_D‖ + λ13 (min_k G_r +
+    A_n)), A_n the node's anchoring cost (``anchor_costs``).
 
     ``zm (T, 32)`` music style; ``sig_cost (T, 256)`` (``rhythm_costs``) per slot pattern the
     rhythm distance G_r of a node whose signature is that pattern. One matrix product, then one
@@ -124,9 +129,26 @@ def data_costs(graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, spec: S
         _style_sq(graph),
         (w.rhythm * sig_cost).astype(np.float32),
         _ro(graph.signature, np.uint8),
+        (w.rhythm * anchor_costs(graph)).astype(np.float32),
         float(w.style),
         float(w.data),
     )
+
+
+def anchor_costs(graph: MotionGraph) -> np.ndarray:
+    """``(N,)``: the rhythm term's anchoring part per node, in units of G_r,
+    ``ANCHOR_WEIGHT``·(max ``anchoring`` − ``anchoring``): 0 for the graph's best-anchored
+    node, more the fewer of a node's stops sit on its beats and the more fall between them
+    (``build.node_anchoring``); zeros for a graph built without the ``anchoring`` array. Every
+    path pays the offset once per bar, so it changes no choice. Why: the renderer lands a
+    node's beats on the song's, so its stops land on the song's beats only as far as they sit
+    on its own."""
+    anchoring = getattr(graph, "anchoring", None)
+    n_nodes = len(graph.signature)
+    if anchoring is None or ANCHOR_WEIGHT == 0 or n_nodes == 0:
+        return np.zeros(n_nodes)
+    anchoring = np.asarray(anchoring, dtype=np.float64)
+    return ANCHOR_WEIGHT * (anchoring.max() - anchoring)
 
 
 def rhythm_costs(topk: np.ndarray) -> np.ndarray:

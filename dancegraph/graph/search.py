@@ -61,7 +61,7 @@ from dancegraph import jit
 from dancegraph.errors import SpecError
 from dancegraph.graph import _dp, choreography
 from dancegraph.graph.artifact import MotionGraph
-from dancegraph.graph.problem import DENSE_LIMIT, Problem, compile_spec
+from dancegraph.graph.problem import DENSE_LIMIT, Problem, anchor_costs, compile_spec
 from dancegraph.motion import quat
 from dancegraph.motion.skeleton import Motion
 from dancegraph.spec import Spec
@@ -285,15 +285,13 @@ def _follow_signature(
 def bar_terms(
     graph: MotionGraph, zm: np.ndarray, sig_cost: np.ndarray, nodes: np.ndarray, spec: Spec
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted style and rhythm terms ``(T,)`` of the chosen ``nodes (T,)`` (for explain)."""
+    """Weighted style and rhythm terms ``(T,)`` of the chosen ``nodes (T,)`` (for explain); the
+    rhythm term with the nodes' anchoring costs (``problem.anchor_costs``)."""
     w = spec.weights
     zd = np.asarray(graph.style)[nodes].astype(np.float64)
     style = w.data * w.style * np.linalg.norm(zm - zd, axis=1)
-    rhythm = (
-        w.data
-        * w.rhythm
-        * sig_cost[np.arange(len(nodes)), np.asarray(graph.signature)[nodes].astype(int)]
-    )
+    g_r = sig_cost[np.arange(len(nodes)), np.asarray(graph.signature)[nodes].astype(int)]
+    rhythm = w.data * w.rhythm * (g_r + anchor_costs(graph)[nodes])
     return style, rhythm
 
 

@@ -20,12 +20,14 @@ def demo_barset(seed: int = 0) -> BarSet:
         beats = np.array(bars, dtype=float)
         frames = np.round(beats[:, [0, 4]] * motion.fps).astype(np.int64)
         takes.append((motion, beats, np.arange(len(bars)), list(sigs), frames))
-    return BarSet.from_takes(
+    bars = BarSet.from_takes(
         motion.skeleton,
         clips,
         takes,
         {cid: [f"style:{r.style}"] for cid, r in zip(clips, DEMO_CLIPS, strict=True)},
     )
+    bars.grid_from_motion = False  # annotated, as the demo library is imported: no anchoring
+    return bars
 
 
 @pytest.fixture(scope="session")

@@ -120,8 +120,9 @@ def test_rendered_pauses_land_on_the_song_beats():
 
 
 def test_build_anchors_motion_read_grids_only(tmp_path):
-    """``bars_from_dataset``: the demo library's annotated grids stay as annotated; gridded from
-    its motion instead (annotations removed), beats move, each moved one onto a stop."""
+    """``bars_from_dataset``: the demo library's annotated grids stay as annotated (and its
+    nodes get no anchoring); gridded from its motion instead (annotations removed), beats move,
+    each moved one onto a stop."""
     import json
 
     from dancegraph.graph.build import bars_from_dataset
@@ -141,14 +142,17 @@ def test_build_anchors_motion_read_grids_only(tmp_path):
 
     ds = load_dataset(store, "annotated")
     assert {c.beat_source for c in ds.clips} == {"annotation"}
-    assert np.array_equal(
-        bars_from_dataset(ds, params=on).beats, bars_from_dataset(ds, params=off).beats
-    )
+    bars = bars_from_dataset(ds, params=on)
+    assert np.array_equal(bars.beats, bars_from_dataset(ds, params=off).beats)
+    # the annotated grids' nodes get no anchoring (the search no anchoring term)
+    assert not bars.grid_from_motion
+    assert "anchoring" not in build_arrays(bars, BuildParams(blend_ratio=0, shuffle_ratio=0))[0]
 
     ds = load_dataset(store, "from_motion")
     assert "annotation" not in {c.beat_source for c in ds.clips}
     moved, kept = bars_from_dataset(ds, params=on), bars_from_dataset(ds, params=off)
     assert not np.allclose(moved.beats, kept.beats)
+    assert moved.grid_from_motion and kept.grid_from_motion
     by_clip = {}
     for b in ds.bars:
         by_clip.setdefault(b.clip_id, []).append(b)
@@ -157,3 +161,24 @@ def test_build_anchors_motion_read_grids_only(tmp_path):
         motion = ds.motion(clip)
         want, _ = take_bars(motion, accent_anchors(grid, motion_stops(motion)))
         assert np.allclose(moved.beats[moved.clip == c], want)
+
+
+def test_node_anchoring_counts_stops_on_and_between_the_beats():
+    """``anchoring`` = Σ (cos 2πφ − 0.5) / 4 over a bar's stops: bars whose beats sit on the
+    take's stops (one per beat) score near 0.5; stops 0.2 beat off their beats (cos 0.31) a
+    little below 0; a grid half a beat off the stops (cos −1) near −1.5."""
+
+    def anchoring(motion, bars, anchors: bool) -> np.ndarray:
+        g = _graph([(motion, bars, None)], anchors)
+        a = np.asarray(g.anchoring)
+        assert np.array_equal(a[: len(bars)], a[len(bars) :])  # a mirror copies its bar's
+        return a[: len(bars)]
+
+    motion, bars, _ = _off_grid_take(4, 110.0, 0.2)
+    assert np.median(anchoring(motion, bars, anchors=True)) >= 0.4
+    off = anchoring(motion, bars, anchors=False)
+    assert off.max() < 0.0 and off.min() > -0.3
+
+    steady, grid, _ = _off_grid_take(5, 110.0, 0.0)
+    assert np.median(anchoring(steady, grid, anchors=False)) >= 0.45
+    assert np.median(anchoring(steady, grid[:-1] + 0.5 * 60.0 / 110.0, anchors=False)) <= -1.2

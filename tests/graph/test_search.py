@@ -587,3 +587,83 @@ def test_compiling_a_spec_gives_the_dp_s_inputs_without_running_it(demo_graph, s
     assert (p.chain.var[p.step] == p.var).all()
     assert p.report["pins"] == [{"field": "include[0]", "node": pin, "bar": 2}]
     assert p.report["excluded_bars"] == 4 and p.report["variables"] == p.n_vars
+
+
+def _twins(anchoring: np.ndarray | None):
+    """Four nodes equal in everything the search reads (style, signature, edges: every node to
+    every other at the same cost), differing only in their ``anchoring`` (None: no array, a
+    graph built before it)."""
+    from dancegraph.graph.artifact import graph_from_arrays
+
+    n, d = 4, 4
+    z = np.zeros
+    src = np.repeat(np.arange(n), n - 1)
+    dst = np.array([q for p in range(n) for q in range(n) if q != p])
+    arrays = {
+        "node_clip": np.arange(n, dtype=np.int32),
+        "node_bar": z(n, np.int32),
+        "node_kind": z(n, np.int8),
+        "node_tags": np.ones(n, np.uint32),
+        "node_source": np.full((n, 2), -1, np.int32),
+        "mirror_of": np.full(n, -1, np.int32),
+        "style": z((n, 32), np.float32),
+        "signature": np.full(n, 0b01010101, np.uint8),
+        "motif": z(n, np.int32),
+        "entry": z((n, d), np.float32),
+        "exit": z((n, d), np.float32),
+        "entry_pc": z((n, d), np.float32),
+        "exit_pc": z((n, d), np.float32),
+        "disp": z((n, 3), np.float32),
+        "radius": z(n, np.float32),
+        "root_path": z((n, 8, 2), np.float32),
+        "duration": np.ones(n, np.float32),
+        "indptr": np.r_[0, np.cumsum(np.bincount(src, minlength=n))].astype(np.int64),
+        "indices": dst.astype(np.int32),
+        "costs": np.full(dst.size, 5.0, np.float32),
+    }
+    if anchoring is not None:
+        arrays["anchoring"] = np.asarray(anchoring, np.float32)
+    manifest = {
+        "clips": [f"c{k}" for k in range(n)],
+        "tags": ["original"],
+        "pc_blocks": [d],
+        "feature_blocks": [d],
+        "params": {},
+    }
+    return graph_from_arrays(arrays, manifest)
+
+
+def test_anchoring_term_prefers_well_anchored_nodes(monkeypatch):
+    """Of otherwise equal nodes the search dances the well-anchored ones (whichever they are),
+    and reports their anchoring cost in the rhythm term; off (weight 0, or no array in the
+    graph) the paths cost the same."""
+    from dancegraph.graph import problem
+
+    song = synthetic_analysis("AB", bars_per_phrase=1)  # two bars: two nodes, no return
+    rules = {"alternatives": 1, "structure": {"repeat": False, "mirror": False}}
+    spec = _spec(**rules)
+    for good in ([0, 1], [2, 3]):
+        anchoring = np.full(4, -0.5)
+        anchoring[good] = 1.0
+        alt = search(_twins(anchoring), song, spec).alternatives[0]
+        assert set(alt.index.tolist()) == set(good)
+        # the others cost 1.5·ANCHOR_WEIGHT more per bar (G_r units, weighted by λ10 λ13), in
+        # the rhythm term
+        bad = np.setdiff1d(np.arange(4), good)
+        without = [{"node": f"c{k}:0"} for k in good]
+        worse = search(_twins(anchoring), song, _spec(**rules, exclude=without))
+        worse = worse.alternatives[0]
+        assert set(worse.index.tolist()) == set(bad.tolist())
+        extra = spec.weights.data * spec.weights.rhythm * problem.ANCHOR_WEIGHT * 1.5
+        assert worse.cost - alt.cost == pytest.approx(song.n_bars * extra, rel=1e-4)
+        rhythm = sum(r["rhythm"] for r in worse.per_bar) - sum(r["rhythm"] for r in alt.per_bar)
+        assert rhythm == pytest.approx(song.n_bars * extra, rel=1e-3)
+    # off: the less anchored nodes cost what they cost in a graph without the array
+    base = search(_twins(None), song, spec).alternatives[0].cost
+    mixed, without = np.array([1.0, 1.0, -0.5, -0.5]), [{"node": "c0:0"}, {"node": "c1:0"}]
+    assert search(_twins(mixed), song, _spec(**rules, exclude=without)).alternatives[0].cost > (
+        base + 1.0
+    )
+    monkeypatch.setattr(problem, "ANCHOR_WEIGHT", 0.0)
+    off = search(_twins(mixed), song, _spec(**rules, exclude=without)).alternatives[0].cost
+    assert off == pytest.approx(base)
