@@ -94,6 +94,8 @@ def scale_graph(
         for k in artifact.ARRAYS
         if k not in {"indptr", "indices", "costs"} | set(artifact.MOTION_ARRAYS)
     ]
+    if "anchoring" in a:  # the optional per-node array (artifact docstring)
+        node_keys.append("anchoring")
     for k in node_keys:
         out[k] = np.concatenate([a[k]] * reps)
     n_clips = len(g.clips)

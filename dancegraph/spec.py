@@ -49,7 +49,12 @@ class Weights(_Strict):
     transition: float = Field(2.0, ge=0, description="λ11: weight of the transition term (novelty)")
     style: float = Field(1.0, ge=0, description="λ12: style distance inside the data term")
     rhythm: float = Field(
-        1.5, ge=0, description="λ13: rhythm-signature distance inside the data term"
+        1.5,
+        ge=0,
+        description=(
+            "λ13: rhythm term inside the data term (rhythm-signature distance plus the "
+            "node's anchoring cost: how far its motion stops sit off its beats)"
+        ),
     )
     structure: float = Field(1000.0, ge=0, description="ζ: penalty per violated repeat/mirror pair")
 
