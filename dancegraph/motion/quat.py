@@ -37,9 +37,21 @@ def conjugate(q: np.ndarray) -> np.ndarray:
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``."""
-    qv = q[..., :3]
-    t = 2.0 * np.cross(qv, v)
-    return v + q[..., 3:4] * t + np.cross(qv, t)
+    v = np.asarray(v)
+    qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
+    # t = 2 (q_xyz × v); v + w t + q_xyz × t, written out (np.cross costs more than the sums)
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    return np.stack(
+        (
+            vx + qw * tx + (qy * tz - qz * ty),
+            vy + qw * ty + (qz * tx - qx * tz),
+            vz + qw * tz + (qx * ty - qy * tx),
+        ),
+        axis=-1,
+    )
 
 
 def identity(shape: tuple[int, ...] = ()) -> np.ndarray:
