@@ -12,7 +12,18 @@ import numpy as np
 
 def normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(..., 4)``."""
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return q / np.sqrt(dot(q, q))[..., None]
+
+
+def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products ``(...)`` of quaternions ``(..., 4)``, summed in component order (the sum
+    ``np.sum(a * b, axis=-1)`` makes, without its temporary and reduction)."""
+    return (
+        a[..., 0] * b[..., 0]
+        + a[..., 1] * b[..., 1]
+        + a[..., 2] * b[..., 2]
+        + a[..., 3] * b[..., 3]
+    )
 
 
 def multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -63,21 +74,21 @@ def identity(shape: tuple[int, ...] = ()) -> np.ndarray:
 
 def same_hemisphere(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """``q`` with signs flipped where it lies in the opposite hemisphere from ``ref``."""
-    dot = np.sum(q * ref, axis=-1, keepdims=True)
-    return np.where(dot < 0.0, -q, q)
+    return np.where(dot(q, ref)[..., None] < 0.0, -q, q)
 
 
 def slerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Spherical interpolation from ``a`` to ``b`` at ``t`` (broadcast ``(...)``), shortest arc."""
     t = np.asarray(t, dtype=float)[..., None]
-    b = same_hemisphere(b, a)
-    dot = np.clip(np.sum(a * b, axis=-1, keepdims=True), -1.0, 1.0)
-    theta = np.arccos(dot)
+    cos = dot(a, b)[..., None]
+    # b's sign flipped into the opposite hemisphere from a goes into its weight (same sums)
+    sign = np.where(cos < 0.0, -1.0, 1.0)
+    theta = np.arccos(np.clip(sign * cos, -1.0, 1.0))
     sin_theta = np.sin(theta)
     small = sin_theta < 1e-6
     safe = np.where(small, 1.0, sin_theta)
     wa = np.where(small, 1.0 - t, np.sin((1.0 - t) * theta) / safe)
-    wb = np.where(small, t, np.sin(t * theta) / safe)
+    wb = np.where(small, t, np.sin(t * theta) / safe) * sign
     return normalize(wa * a + wb * b)
 
 
