@@ -156,17 +156,23 @@ def sample(motion: Motion, frames: np.ndarray) -> Motion:
 
 
 def sample_runs(
-    motions: Sequence[Motion], frames: Sequence[np.ndarray]
+    motions: Sequence[Motion], frames: Sequence[np.ndarray], joints: Sequence[int] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``sample`` of each motion at its frames, one after the other: root positions ``(N, 3)``
-    and rotations ``(N, J, 4)`` (N the total of the frames; the motions share a skeleton).
-    One slerp for all of them, for callers that sample many short runs (a dance's bars)."""
+    and rotations ``(N, J, 4)`` (N the total of the frames; the motions share a skeleton;
+    ``joints``: only these joints' rotations, ``(N, len(joints), 4)``). One slerp for all of
+    them, for callers that sample many short runs (a dance's bars, a seam's candidates)."""
     parts = [(m, *_bracket(m, f)) for m, f in zip(motions, frames, strict=True)]
+
+    def rot(m: Motion, rows: np.ndarray) -> np.ndarray:
+        out = np.take(m.rotations, rows, axis=0)
+        return out if joints is None else np.take(out, joints, axis=1)
+
     return _interpolate(
-        np.concatenate([m.root_positions[lo] for m, lo, _, _ in parts]),
-        np.concatenate([m.root_positions[hi] for m, _, hi, _ in parts]),
-        np.concatenate([m.rotations[lo] for m, lo, _, _ in parts]),
-        np.concatenate([m.rotations[hi] for m, _, hi, _ in parts]),
+        np.concatenate([np.take(m.root_positions, lo, axis=0) for m, lo, _, _ in parts]),
+        np.concatenate([np.take(m.root_positions, hi, axis=0) for m, _, hi, _ in parts]),
+        np.concatenate([rot(m, lo) for m, lo, _, _ in parts]),
+        np.concatenate([rot(m, hi) for m, _, hi, _ in parts]),
         np.concatenate([t for _, _, _, t in parts]),
     )
 

@@ -443,31 +443,34 @@ def _distances(pieces, source, fps, seams, candidates):
     width = max(len(k) for k in candidates) + 2
     sk = pieces[0][0].skeleton
     needed = with_ancestors(sk, [sk.index(sk.canonical[k]) for k in main_joint_keys(sk)])
-    n = len(seams)
-    valid = np.zeros((n, width - 2), dtype=bool)
+    sub = _sub_skeleton(sk, needed)
+    # each candidate with the frames either side; padded past the window (masked)
+    runs = [np.arange(k[0] - 1, k[0] - 1 + width) for k in candidates]
+    valid = np.arange(width - 2) < np.array([len(k) for k in candidates])[:, None]
     feats = []
     for side in (0, 1):
-        roots, lo_rot, hi_rot, ts = [], [], [], []
-        for row, (s, k) in enumerate(zip(seams, candidates, strict=True)):
-            m = pieces[s + side][0]
-            # each candidate with the frames either side; padded past the window (masked)
-            idx = source(s + side, np.arange(k[0] - 1, k[0] - 1 + width))
-            inside = (idx >= 0.0) & (idx <= m.n_frames - 1)
-            ok = inside[:-2] & inside[1:-1] & inside[2:]
-            ok[len(k) :] = False
-            valid[row] = ok if side == 0 else valid[row] & ok
-            f = np.clip(idx, 0.0, m.n_frames - 1)
-            lo = np.floor(f).astype(np.int64)
-            hi = np.minimum(lo + 1, m.n_frames - 1)
-            t = (f - lo)[:, None]
-            roots.append(m.root_positions[lo] + t * (m.root_positions[hi] - m.root_positions[lo]))
-            lo_rot.append(m.rotations[lo][:, needed])
-            hi_rot.append(m.rotations[hi][:, needed])
-            ts.append(t)
-        rot = np.zeros((n * width,) + pieces[0][0].rotations.shape[1:])
-        rot[:, needed] = quat.slerp(
-            np.concatenate(lo_rot), np.concatenate(hi_rot), np.concatenate(ts)
+        motions = [pieces[s + side][0] for s in seams]
+        idx = np.stack([source(s + side, r) for s, r in zip(seams, runs, strict=True)])
+        inside = (idx >= 0.0) & (idx <= np.array([m.n_frames - 1 for m in motions])[:, None])
+        valid &= inside[:, :-2] & inside[:, 1:-1] & inside[:, 2:]
+        root, rot = sample_runs(motions, idx, needed)
+        n = len(seams)
+        feats.append(
+            seam_features(sub, root.reshape(n, width, 3), rot.reshape(n, width, -1, 4), 1.0 / fps)
         )
-        root = np.concatenate(roots).reshape(n, width, 3)
-        feats.append(seam_features(sk, root, rot.reshape(n, width, *rot.shape[1:]), 1.0 / fps))
     return seam_distance(feats[0][0], feats[1][0], feats[0][1]), valid
+
+
+def _sub_skeleton(skeleton: Skeleton, joints: Sequence[int]) -> Skeleton:
+    """The skeleton of ``joints`` alone (each with its ancestors, in skeleton order): a body
+    whose forward kinematics gives the same positions and rotations for them."""
+    new = {j: i for i, j in enumerate(joints)}
+    names = [skeleton.names[j] for j in joints]
+    return Skeleton(
+        names=names,
+        parents=np.array([new.get(int(skeleton.parents[j]), -1) for j in joints]),
+        offsets=skeleton.offsets[list(joints)],
+        channels=[skeleton.channels[j] for j in joints],
+        end_sites={new[j]: off for j, off in skeleton.end_sites.items() if j in new},
+        canonical={k: v for k, v in skeleton.canonical.items() if v in set(names)},
+    )
