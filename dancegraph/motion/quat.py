@@ -82,7 +82,8 @@ def slerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     t = np.asarray(t, dtype=float)[..., None]
     cos = dot(a, b)[..., None]
     # b's sign flipped into the opposite hemisphere from a goes into its weight (same sums)
-    sign = np.where(cos < 0.0, -1.0, 1.0)
+    sign = np.ones_like(cos)
+    sign[cos < 0.0] = -1.0
     theta = np.arccos(np.clip(sign * cos, -1.0, 1.0))
     sin_theta = np.sin(theta)
     small = sin_theta < 1e-6
