@@ -135,16 +135,23 @@ def limb_reach(skeleton: Skeleton) -> np.ndarray:
     return reach
 
 
-def _decay(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Bollo's quintic from offsets ``x0`` with velocities ``v0`` (per frame) to zero value,
-    velocity and acceleration at frame ``lengths`` (broadcast to ``x0``; zero after), at ``t``
-    frames after the cut (broadcast against ``x0``)."""
+def _quintic(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``(7, ...)`` Bollo's quintic from offsets ``x0`` with velocities ``v0`` (per frame) to
+    zero value, velocity and acceleration at frame ``lengths`` (broadcast to ``x0``): its
+    coefficients of t⁵, t⁴, t³, t², t, 1 and its length, for ``_decay``."""
     T = np.broadcast_to(np.asarray(lengths, dtype=float), x0.shape)
     a0 = (-8.0 * v0 * T - 20.0 * x0) / T**2
     A = -(a0 * T**2 + 6.0 * v0 * T + 12.0 * x0) / (2.0 * T**5)
     B = (3.0 * a0 * T**2 + 16.0 * v0 * T + 30.0 * x0) / (2.0 * T**4)
     C = -(3.0 * a0 * T**2 + 12.0 * v0 * T + 20.0 * x0) / (2.0 * T**3)
-    x = (((A * t + B) * t + C) * t + 0.5 * a0) * t * t + v0 * t + x0
+    return np.stack([A, B, C, 0.5 * a0, v0, x0, T])
+
+
+def _decay(quintic: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The offsets of ``_quintic``'s coefficients ``(7, ...)`` at ``t`` frames after the cut
+    (broadcast), zero from each one's length on."""
+    A, B, C, half_a0, v0, x0, T = quintic
+    x = (((A * t + B) * t + C) * t + half_a0) * t * t + v0 * t + x0
     return np.where(t < T, x, 0.0)
 
 
@@ -231,9 +238,10 @@ def _blend(root: np.ndarray, rot: np.ndarray, cuts: np.ndarray, off: _Offsets) -
     seam = np.repeat(np.arange(len(n)), n)
     t = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)  # frames after the cut
     rows = np.repeat(np.asarray(cuts, dtype=np.int64), n) + t
-    root[rows] += _decay(off.x0[seam], off.v0[seam], off.n_pos[seam][:, None], t[:, None])
+    # each seam's coefficients, then every frame's value
+    root[rows] += _decay(_quintic(off.x0, off.v0, off.n_pos[:, None])[:, seam], t[:, None])
     offsets = quat.from_rotvec(
-        _decay(off.x0r[seam], off.v0r[seam], off.n_rot[seam], t[:, None, None])
+        _decay(_quintic(off.x0r, off.v0r, off.n_rot)[:, seam], t[:, None, None])
     )  # (rows, J, 4)
     rot[rows] = quat.normalize(quat.multiply(offsets, quat.same_hemisphere(rot[rows], offsets)))
 
