@@ -155,7 +155,9 @@ def _decay(quintic: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.where(t < T, x, 0.0)
 
 
-def _lengths(size: np.ndarray, speed: np.ndarray, fps: float, least: int, most) -> np.ndarray:
+def _lengths(
+    size: np.ndarray, speed: np.ndarray, fps: float, least: int, most: int | np.ndarray
+) -> np.ndarray:
     """Decay length (frames) of offsets that move a body point ``size`` metres at ``speed`` m/s:
     the shortest T whose initial acceleration |8·v/T + 20·x/T²| stays below ``MAX_OFFSET_ACC``,
     between ``least`` and ``most`` (broadcast)."""
@@ -165,7 +167,11 @@ def _lengths(size: np.ndarray, speed: np.ndarray, fps: float, least: int, most) 
 
 
 def _turn(
-    root: np.ndarray, rot0: np.ndarray, turn, pivot: np.ndarray, target: np.ndarray
+    root: np.ndarray,
+    rot0: np.ndarray,
+    turn: float | np.ndarray,
+    pivot: np.ndarray,
+    target: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Root positions ``(..., F, 3)`` and root rotations ``(..., F, 4)`` turned by ``turn``
     radians ``(...)`` about +Y around ground point ``pivot (..., 3)`` and moved so that the
@@ -455,6 +461,7 @@ def _distances(pieces, source, fps, seams, candidates):
     # each candidate with the frames either side; padded past the window (masked)
     runs = [np.arange(k[0] - 1, k[0] - 1 + width) for k in candidates]
     valid = np.arange(width - 2) < np.array([len(k) for k in candidates])[:, None]
+    n = len(seams)
     feats = []
     for side in (0, 1):
         motions = [pieces[s + side][0] for s in seams]
@@ -462,7 +469,6 @@ def _distances(pieces, source, fps, seams, candidates):
         inside = (idx >= 0.0) & (idx <= np.array([m.n_frames - 1 for m in motions])[:, None])
         valid &= inside[:, :-2] & inside[:, 1:-1] & inside[:, 2:]
         root, rot = sample_runs(motions, idx, needed)
-        n = len(seams)
         feats.append(
             seam_features(sub, root.reshape(n, width, 3), rot.reshape(n, width, -1, 4), 1.0 / fps)
         )
@@ -474,11 +480,12 @@ def _sub_skeleton(skeleton: Skeleton, joints: Sequence[int]) -> Skeleton:
     whose forward kinematics gives the same positions and rotations for them."""
     new = {j: i for i, j in enumerate(joints)}
     names = [skeleton.names[j] for j in joints]
+    kept = set(names)
     return Skeleton(
         names=names,
         parents=np.array([new.get(int(skeleton.parents[j]), -1) for j in joints]),
         offsets=skeleton.offsets[list(joints)],
         channels=[skeleton.channels[j] for j in joints],
         end_sites={new[j]: off for j, off in skeleton.end_sites.items() if j in new},
-        canonical={k: v for k, v in skeleton.canonical.items() if v in set(names)},
+        canonical={k: v for k, v in skeleton.canonical.items() if v in kept},
     )
