@@ -12,7 +12,18 @@ import numpy as np
 
 def normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(..., 4)``."""
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return q / np.sqrt(dot(q, q))[..., None]
+
+
+def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products ``(...)`` of quaternions ``(..., 4)``, summed in component order (the sum
+    ``np.sum(a * b, axis=-1)`` makes, without its temporary and reduction)."""
+    return (
+        a[..., 0] * b[..., 0]
+        + a[..., 1] * b[..., 1]
+        + a[..., 2] * b[..., 2]
+        + a[..., 3] * b[..., 3]
+    )
 
 
 def multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -37,9 +48,21 @@ def conjugate(q: np.ndarray) -> np.ndarray:
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``."""
-    qv = q[..., :3]
-    t = 2.0 * np.cross(qv, v)
-    return v + q[..., 3:4] * t + np.cross(qv, t)
+    v = np.asarray(v)
+    qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
+    # t = 2 (q_xyz × v); v + w t + q_xyz × t, written out (np.cross costs more than the sums)
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    return np.stack(
+        (
+            vx + qw * tx + (qy * tz - qz * ty),
+            vy + qw * ty + (qz * tx - qx * tz),
+            vz + qw * tz + (qx * ty - qy * tx),
+        ),
+        axis=-1,
+    )
 
 
 def identity(shape: tuple[int, ...] = ()) -> np.ndarray:
@@ -51,21 +74,22 @@ def identity(shape: tuple[int, ...] = ()) -> np.ndarray:
 
 def same_hemisphere(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """``q`` with signs flipped where it lies in the opposite hemisphere from ``ref``."""
-    dot = np.sum(q * ref, axis=-1, keepdims=True)
-    return np.where(dot < 0.0, -q, q)
+    return np.where(dot(q, ref)[..., None] < 0.0, -q, q)
 
 
 def slerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Spherical interpolation from ``a`` to ``b`` at ``t`` (broadcast ``(...)``), shortest arc."""
     t = np.asarray(t, dtype=float)[..., None]
-    b = same_hemisphere(b, a)
-    dot = np.clip(np.sum(a * b, axis=-1, keepdims=True), -1.0, 1.0)
-    theta = np.arccos(dot)
+    cos = dot(a, b)[..., None]
+    # b's sign flipped into the opposite hemisphere from a goes into its weight (same sums)
+    sign = np.ones_like(cos)
+    sign[cos < 0.0] = -1.0
+    theta = np.arccos(np.clip(sign * cos, -1.0, 1.0))
     sin_theta = np.sin(theta)
     small = sin_theta < 1e-6
     safe = np.where(small, 1.0, sin_theta)
     wa = np.where(small, 1.0 - t, np.sin((1.0 - t) * theta) / safe)
-    wb = np.where(small, t, np.sin(t * theta) / safe)
+    wb = np.where(small, t, np.sin(t * theta) / safe) * sign
     return normalize(wa * a + wb * b)
 
 

@@ -11,6 +11,8 @@ the bar's ends, where the seam's cut may fall (docs/rendering.md).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from dancegraph.motion import quat
@@ -142,15 +144,53 @@ def sample(motion: Motion, frames: np.ndarray) -> Motion:
     Root positions are interpolated linearly, rotations by slerp along the shorter arc. The
     result keeps ``motion.fps``; callers set the rate they mean.
     """
+    lo, hi, t = _bracket(motion, frames)
+    root, rot = _interpolate(
+        motion.root_positions[lo],
+        motion.root_positions[hi],
+        motion.rotations[lo],
+        motion.rotations[hi],
+        t,
+    )
+    return Motion(motion.skeleton, motion.fps, root, rot)
+
+
+def sample_runs(
+    motions: Sequence[Motion], frames: Sequence[np.ndarray], joints: Sequence[int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sample`` of each motion at its frames, one after the other: root positions ``(N, 3)``
+    and rotations ``(N, J, 4)`` (N the total of the frames; the motions share a skeleton;
+    ``joints``: only these joints' rotations, ``(N, len(joints), 4)``). One slerp for all of
+    them, for callers that sample many short runs (a dance's bars, a seam's candidates)."""
+    parts = [(m, *_bracket(m, f)) for m, f in zip(motions, frames, strict=True)]
+
+    def rot(m: Motion, rows: np.ndarray) -> np.ndarray:
+        out = np.take(m.rotations, rows, axis=0)
+        return out if joints is None else np.take(out, joints, axis=1)
+
+    return _interpolate(
+        np.concatenate([np.take(m.root_positions, lo, axis=0) for m, lo, _, _ in parts]),
+        np.concatenate([np.take(m.root_positions, hi, axis=0) for m, _, hi, _ in parts]),
+        np.concatenate([rot(m, lo) for m, lo, _, _ in parts]),
+        np.concatenate([rot(m, hi) for m, _, hi, _ in parts]),
+        np.concatenate([t for _, _, _, t in parts]),
+    )
+
+
+def _bracket(motion: Motion, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stored frames either side of each fractional frame (clamped to the clip) and the
+    fraction of the way from the one to the other."""
     f = np.clip(np.asarray(frames, dtype=float), 0.0, motion.n_frames - 1)
     lo = np.floor(f).astype(np.int64)
     hi = np.minimum(lo + 1, motion.n_frames - 1)
-    t = f - lo
-    root = motion.root_positions[lo] + t[:, None] * (
-        motion.root_positions[hi] - motion.root_positions[lo]
-    )
-    rot = quat.slerp(motion.rotations[lo], motion.rotations[hi], t[:, None])
-    return Motion(motion.skeleton, motion.fps, root, rot)
+    return lo, hi, f - lo
+
+
+def _interpolate(
+    root_lo: np.ndarray, root_hi: np.ndarray, rot_lo: np.ndarray, rot_hi: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    root = root_lo + t[:, None] * (root_hi - root_lo)
+    return root, quat.slerp(rot_lo, rot_hi, t[:, None])
 
 
 def retime(motion: Motion, n_frames: int, fps: float, *, endpoint: bool = False) -> Motion:

@@ -26,12 +26,13 @@ and the limb below it, never past the next cut.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays, with_ancestors
-from dancegraph.motion.retime import node_warp, sample, song_phase
+from dancegraph.motion.retime import node_warp, sample_runs, song_phase
 from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 
 #: Half-width (beats) of the window around a bar line where the cut may fall.
@@ -134,36 +135,121 @@ def limb_reach(skeleton: Skeleton) -> np.ndarray:
     return reach
 
 
-def _decay(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray, n: int) -> np.ndarray:
-    """``(n, ...)`` Bollo's quintic from offsets ``x0`` with velocities ``v0`` (per frame) to zero
-    value, velocity and acceleration at frame ``lengths`` (broadcast to ``x0``; zero after)."""
+def _quintic(x0: np.ndarray, v0: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``(7, ...)`` Bollo's quintic from offsets ``x0`` with velocities ``v0`` (per frame) to
+    zero value, velocity and acceleration at frame ``lengths`` (broadcast to ``x0``): its
+    coefficients of t⁵, t⁴, t³, t², t, 1 and its length, for ``_decay``."""
     T = np.broadcast_to(np.asarray(lengths, dtype=float), x0.shape)
-    t = np.arange(n, dtype=float).reshape((-1,) + (1,) * x0.ndim)
     a0 = (-8.0 * v0 * T - 20.0 * x0) / T**2
     A = -(a0 * T**2 + 6.0 * v0 * T + 12.0 * x0) / (2.0 * T**5)
     B = (3.0 * a0 * T**2 + 16.0 * v0 * T + 30.0 * x0) / (2.0 * T**4)
     C = -(3.0 * a0 * T**2 + 12.0 * v0 * T + 20.0 * x0) / (2.0 * T**3)
-    x = (((A * t + B) * t + C) * t + 0.5 * a0) * t * t + v0 * t + x0
+    return np.stack([A, B, C, 0.5 * a0, v0, x0, T])
+
+
+def _decay(quintic: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The offsets of ``_quintic``'s coefficients ``(7, ...)`` at ``t`` frames after the cut
+    (broadcast), zero from each one's length on."""
+    A, B, C, half_a0, v0, x0, T = quintic
+    x = (((A * t + B) * t + C) * t + half_a0) * t * t + v0 * t + x0
     return np.where(t < T, x, 0.0)
 
 
-def _lengths(size: np.ndarray, speed: np.ndarray, fps: float, least: int, most: int) -> np.ndarray:
+def _lengths(
+    size: np.ndarray, speed: np.ndarray, fps: float, least: int, most: int | np.ndarray
+) -> np.ndarray:
     """Decay length (frames) of offsets that move a body point ``size`` metres at ``speed`` m/s:
-    the shortest T whose initial acceleration |8·v/T + 20·x/T²| stays below ``MAX_OFFSET_ACC``."""
+    the shortest T whose initial acceleration |8·v/T + 20·x/T²| stays below ``MAX_OFFSET_ACC``,
+    between ``least`` and ``most`` (broadcast)."""
     a = MAX_OFFSET_ACC
     t = (8.0 * speed + np.sqrt(64.0 * speed**2 + 80.0 * a * size)) / (2.0 * a)
-    return np.clip(np.ceil(t * fps), least, max(least, most))
+    return np.clip(np.ceil(t * fps), least, np.maximum(least, most))
 
 
-def _turned(motion: Motion, turn: float, pivot: np.ndarray, target: np.ndarray) -> Motion:
-    """``motion`` turned by ``turn`` radians about +Y around ground point ``pivot`` and moved so
-    that the pivot lands on ground point ``target`` (heights kept)."""
-    q = quat.from_y_angle(np.float64(turn))
-    rel = motion.root_positions - pivot * [1.0, 0.0, 1.0]
-    root = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel) + target * [1.0, 0.0, 1.0]
-    rot = motion.rotations.copy()
-    rot[:, 0] = quat.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
-    return Motion(motion.skeleton, motion.fps, root, rot)
+def _turn(
+    root: np.ndarray,
+    rot0: np.ndarray,
+    turn: float | np.ndarray,
+    pivot: np.ndarray,
+    target: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Root positions ``(..., F, 3)`` and root rotations ``(..., F, 4)`` turned by ``turn``
+    radians ``(...)`` about +Y around ground point ``pivot (..., 3)`` and moved so that the
+    pivot lands on ground point ``target (..., 3)`` (heights kept)."""
+    q = quat.from_y_angle(np.asarray(turn, dtype=np.float64))[..., None, :]
+    ground = np.array([1.0, 0.0, 1.0])
+    rel = root - np.asarray(pivot)[..., None, :] * ground
+    moved = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel)
+    moved = moved + np.asarray(target)[..., None, :] * ground
+    return moved, quat.multiply(np.broadcast_to(q, rot0.shape), rot0)
+
+
+class _Offsets(NamedTuple):
+    """What ``_offsets`` returns for S seams."""
+
+    x0: np.ndarray  # (S, 3) root position offset at the cut, m
+    v0: np.ndarray  # (S, 3) its velocity, m per frame
+    n_pos: np.ndarray  # (S,) its decay length, frames
+    x0r: np.ndarray  # (S, J, 3) joint rotation offsets (rotation vectors)
+    v0r: np.ndarray  # (S, J, 3) their velocities, per frame
+    n_rot: np.ndarray  # (S, J, 1) their decay lengths, frames
+    n: np.ndarray  # (S,) int the longest decay, frames
+
+
+def _offsets(
+    p_root: np.ndarray,
+    p_rot: np.ndarray,
+    q_root: np.ndarray,
+    q_rot: np.ndarray,
+    room: np.ndarray,
+    length: np.ndarray,
+    fps: float,
+    reach: np.ndarray,
+) -> _Offsets:
+    """The offsets between p and q at S cuts and how long each decays.
+
+    ``p_root (S, 3, 3)``, ``p_rot (S, 3, J, 4)``: p's frames before, at and after each cut;
+    ``q_root``, ``q_rot``: q's, already on p's ground (``_turn``); ``room (S,)`` frames a decay
+    may take (``BLEND_MAX_S`` caps it), ``length (S,)`` frames of q's segment after the cut;
+    ``reach (J,)`` the skeleton's ``limb_reach``."""
+    x0 = p_root[:, 1] - q_root[:, 1]
+    v0 = 0.5 * ((p_root[:, 2] - p_root[:, 0]) - (q_root[:, 2] - q_root[:, 0]))
+    q_rot = quat.same_hemisphere(q_rot, p_rot)
+    x0r = quat.to_rotvec(quat.multiply(p_rot[:, 1], quat.conjugate(q_rot[:, 1])))
+    v0r = 0.5 * (
+        quat.to_rotvec(quat.multiply(p_rot[:, 2], quat.conjugate(p_rot[:, 0])))
+        - quat.to_rotvec(quat.multiply(q_rot[:, 2], quat.conjugate(q_rot[:, 0])))
+    )
+    least = max(1, int(round(BLEND_MIN_S * fps)))
+    top = np.maximum(least, np.minimum(room, int(round(BLEND_MAX_S * fps))))
+    reach = np.maximum(reach, 0.1)[:, None]
+    n_pos = _lengths(
+        np.linalg.norm(x0, axis=-1), np.linalg.norm(v0, axis=-1) * fps, fps, least, top
+    )
+    n_rot = _lengths(
+        np.linalg.norm(x0r, axis=-1, keepdims=True) * reach,
+        np.linalg.norm(v0r, axis=-1, keepdims=True) * reach * fps,
+        fps,
+        least,
+        top[:, None, None],
+    )
+    n = np.minimum(length, np.maximum(n_pos, n_rot.max(axis=(1, 2)))).astype(np.int64)
+    return _Offsets(x0, v0, n_pos, x0r, v0r, n_rot, n)
+
+
+def _blend(root: np.ndarray, rot: np.ndarray, cuts: np.ndarray, off: _Offsets) -> None:
+    """Add the decaying offsets ``off`` of S seams to the dance ``root (F, 3)``, ``rot (F, J,
+    4)`` in place, seam s over its ``off.n[s]`` frames from frame ``cuts[s]`` on."""
+    n = off.n
+    seam = np.repeat(np.arange(len(n)), n)
+    t = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)  # frames after the cut
+    rows = np.repeat(np.asarray(cuts, dtype=np.int64), n) + t
+    # each seam's coefficients, then every frame's value
+    root[rows] += _decay(_quintic(off.x0, off.v0, off.n_pos[:, None])[:, seam], t[:, None])
+    offsets = quat.from_rotvec(
+        _decay(_quintic(off.x0r, off.v0r, off.n_rot)[:, seam], t[:, None, None])
+    )  # (rows, J, 4)
+    rot[rows] = quat.normalize(quat.multiply(offsets, quat.same_hemisphere(rot[rows], offsets)))
 
 
 def hand_over(
@@ -183,7 +269,7 @@ def hand_over(
     root position and every joint rotation and of their velocities are decayed over the frames
     after the cut (at most ``most``, default the segment's length); ``reach``: the skeleton's
     ``limb_reach`` when the caller has it. Returns the segment, the
-    ground transform applied (turn, pivot, target: see ``_turned``) and the longest decay in
+    ground transform applied (turn, pivot, target: see ``_turn``) and the longest decay in
     frames.
     """
     fps = segment.fps
@@ -191,41 +277,24 @@ def hand_over(
         quat.heading_angle(before.rotations[1, 0]) - quat.heading_angle(after.rotations[1, 0])
     )
     pivot, target = after.root_positions[1].copy(), before.root_positions[1].copy()
-    segment = _turned(segment, turn, pivot, target)
-    if not blend or segment.n_frames < 2:
-        return segment, (turn, pivot, target), 0
-    q3 = _turned(after, turn, pivot, target)
-    p_root, q_root = before.root_positions, q3.root_positions
-    x0 = p_root[1] - q_root[1]
-    v0 = 0.5 * ((p_root[2] - p_root[0]) - (q_root[2] - q_root[0]))
-    p_rot = before.rotations
-    q_rot = quat.same_hemisphere(q3.rotations, p_rot)
-    x0r = quat.to_rotvec(quat.multiply(p_rot[1], quat.conjugate(q_rot[1])))
-    v0r = 0.5 * (
-        quat.to_rotvec(quat.multiply(p_rot[2], quat.conjugate(p_rot[0])))
-        - quat.to_rotvec(quat.multiply(q_rot[2], quat.conjugate(q_rot[0])))
-    )
-    most = segment.n_frames if most is None else min(most, segment.n_frames)
-    least = max(1, int(round(BLEND_MIN_S * fps)))
-    top = max(least, min(most, int(round(BLEND_MAX_S * fps))))
-    reach = np.maximum(limb_reach(segment.skeleton) if reach is None else reach, 0.1)[:, None]
-    n_pos = _lengths(
-        np.asarray(np.linalg.norm(x0)), np.asarray(np.linalg.norm(v0) * fps), fps, least, top
-    )
-    n_rot = _lengths(
-        np.linalg.norm(x0r, axis=-1, keepdims=True) * reach,
-        np.linalg.norm(v0r, axis=-1, keepdims=True) * reach * fps,
-        fps,
-        least,
-        top,
-    )  # (J, 1)
-    n = int(min(segment.n_frames, max(float(n_pos), float(n_rot.max()))))
-    root = segment.root_positions.copy()
-    root[:n] += _decay(x0, v0, n_pos, n)
     rot = segment.rotations.copy()
-    offsets = quat.from_rotvec(_decay(x0r, v0r, n_rot, n))  # (n, J, 4)
-    rot[:n] = quat.normalize(quat.multiply(offsets, quat.same_hemisphere(rot[:n], offsets)))
-    return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), n
+    root, rot[:, 0] = _turn(segment.root_positions, rot[:, 0], turn, pivot, target)
+    if not blend or segment.n_frames < 2:
+        return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), 0
+    q_rot = after.rotations.copy()
+    q_root, q_rot[:, 0] = _turn(after.root_positions, q_rot[:, 0], turn, pivot, target)
+    off = _offsets(
+        before.root_positions[None],
+        before.rotations[None],
+        q_root[None],
+        q_rot[None],
+        np.array([segment.n_frames if most is None else min(most, segment.n_frames)]),
+        np.array([segment.n_frames]),
+        fps,
+        limb_reach(segment.skeleton) if reach is None else reach,
+    )
+    _blend(root, rot, np.zeros(1, dtype=np.int64), off)
+    return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), int(off.n[0])
 
 
 # --------------------------------------------------------------------------------------------
@@ -284,34 +353,65 @@ def stitch(
         pieces, frames, fps, lambda k: u[k - first], source, cut_beats
     )
     bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]])
-    roots, rots, blends = [], [], []
-    transform = None
-    reach = limb_reach(sk)
-    for b, (motion, _) in enumerate(pieces):
-        k = np.arange(bounds[b], bounds[b + 1])
-        seg = sample(motion, source(b, k))
-        seg.fps = float(fps)
-        if b > 0:
-            c = int(bounds[b])
-            prev = sample(pieces[b - 1][0], source(b - 1, np.arange(c - 1, c + 2)))
-            if transform is not None:
-                prev = _turned(prev, *transform)
-            now = sample(motion, source(b, np.arange(c - 1, c + 2)))
-            prev.fps = now.fps = float(fps)
-            seg, transform, n = hand_over(
-                prev, now, seg, blend=blend and not flow[b - 1], reach=reach
+    # each bar's source frames over its segment [bounds[b], bounds[b+1]) and one frame either
+    # side: the three frames about each of its cuts
+    src = [source(b, np.arange(bounds[b] - 1, bounds[b + 1] + 2)) for b in range(len(pieces))]
+    motions = [m for m, _ in pieces]
+    root, rot = sample_runs(motions, [f[1:-2] for f in src])
+    n_seams = len(pieces) - 1
+    if n_seams:
+        # p's three frames about each cut, then q's: (seam, 3 frames)
+        p_root, p_rot = sample_runs(motions[:-1], [f[-3:] for f in src[:-1]])
+        q_root, q_rot = sample_runs(motions[1:], [f[:3] for f in src[1:]])
+        p_root, q_root = p_root.reshape(n_seams, 3, 3), q_root.reshape(n_seams, 3, 3)
+        p_rot = p_rot.reshape(n_seams, 3, *p_rot.shape[1:])
+        q_rot = q_rot.reshape(n_seams, 3, *q_rot.shape[1:])
+        # the ground transform of each later bar (q onto p, p on its own bar's ground): a chain
+        turns, targets = np.zeros(n_seams), np.zeros((n_seams, 3))
+        pivots = q_root[:, 1].copy()
+        q_heading = quat.heading_angle(q_rot[:, 1, 0])
+        for s in range(n_seams):
+            if s > 0:
+                p_root[s], p_rot[s, :, 0] = _turn(
+                    p_root[s], p_rot[s, :, 0], turns[s - 1], pivots[s - 1], targets[s - 1]
+                )
+            turns[s] = float(quat.heading_angle(p_rot[s, 1, 0]) - q_heading[s])
+            targets[s] = p_root[s, 1]
+        q_root, q_rot[:, :, 0] = _turn(q_root, q_rot[:, :, 0], turns, pivots, targets)
+        # every later bar's segment onto its ground
+        start = bounds[1:-1] - bounds[0]  # the cuts, in the dance's frames
+        length = np.diff(bounds)[1:]
+        bar = np.repeat(np.arange(n_seams), length)
+        later = slice(int(start[0]), None)
+        moved, turned = _turn(
+            root[later, None], rot[later, 0, None], turns[bar], pivots[bar], targets[bar]
+        )
+        root[later], rot[later, 0] = moved[:, 0], turned[:, 0]
+        blend_here = np.flatnonzero(blend & ~flow & (length >= 2))
+        blends = np.zeros(n_seams, dtype=np.int64)
+        if len(blend_here):
+            off = _offsets(
+                p_root[blend_here],
+                p_rot[blend_here],
+                q_root[blend_here],
+                q_rot[blend_here],
+                length[blend_here],
+                length[blend_here],
+                fps,
+                limb_reach(sk),
             )
-            blends.append(n)
-        roots.append(seg.root_positions)
-        rots.append(seg.rotations)
-    dance = Motion(sk, float(fps), np.concatenate(roots), np.concatenate(rots))
+            _blend(root, rot, start[blend_here], off)
+            blends[blend_here] = off.n
+    else:
+        blends = np.zeros(0, dtype=np.int64)
+    dance = Motion(sk, float(fps), root, rot)
     line = frames[1:, 0]
     report = {
         "cuts": cuts,
         "cut_beats": u[cuts - first] - u[line - first],
         "distance": distance,
         "continuous": flow,
-        "blend_frames": np.asarray(blends, dtype=np.int64),
+        "blend_frames": blends,
     }
     return dance, report
 
@@ -357,31 +457,35 @@ def _distances(pieces, source, fps, seams, candidates):
     width = max(len(k) for k in candidates) + 2
     sk = pieces[0][0].skeleton
     needed = with_ancestors(sk, [sk.index(sk.canonical[k]) for k in main_joint_keys(sk)])
+    sub = _sub_skeleton(sk, needed)
+    # each candidate with the frames either side; padded past the window (masked)
+    runs = [np.arange(k[0] - 1, k[0] - 1 + width) for k in candidates]
+    valid = np.arange(width - 2) < np.array([len(k) for k in candidates])[:, None]
     n = len(seams)
-    valid = np.zeros((n, width - 2), dtype=bool)
     feats = []
     for side in (0, 1):
-        roots, lo_rot, hi_rot, ts = [], [], [], []
-        for row, (s, k) in enumerate(zip(seams, candidates, strict=True)):
-            m = pieces[s + side][0]
-            # each candidate with the frames either side; padded past the window (masked)
-            idx = source(s + side, np.arange(k[0] - 1, k[0] - 1 + width))
-            inside = (idx >= 0.0) & (idx <= m.n_frames - 1)
-            ok = inside[:-2] & inside[1:-1] & inside[2:]
-            ok[len(k) :] = False
-            valid[row] = ok if side == 0 else valid[row] & ok
-            f = np.clip(idx, 0.0, m.n_frames - 1)
-            lo = np.floor(f).astype(np.int64)
-            hi = np.minimum(lo + 1, m.n_frames - 1)
-            t = (f - lo)[:, None]
-            roots.append(m.root_positions[lo] + t * (m.root_positions[hi] - m.root_positions[lo]))
-            lo_rot.append(m.rotations[lo][:, needed])
-            hi_rot.append(m.rotations[hi][:, needed])
-            ts.append(t)
-        rot = np.zeros((n * width,) + pieces[0][0].rotations.shape[1:])
-        rot[:, needed] = quat.slerp(
-            np.concatenate(lo_rot), np.concatenate(hi_rot), np.concatenate(ts)
+        motions = [pieces[s + side][0] for s in seams]
+        idx = np.stack([source(s + side, r) for s, r in zip(seams, runs, strict=True)])
+        inside = (idx >= 0.0) & (idx <= np.array([m.n_frames - 1 for m in motions])[:, None])
+        valid &= inside[:, :-2] & inside[:, 1:-1] & inside[:, 2:]
+        root, rot = sample_runs(motions, idx, needed)
+        feats.append(
+            seam_features(sub, root.reshape(n, width, 3), rot.reshape(n, width, -1, 4), 1.0 / fps)
         )
-        root = np.concatenate(roots).reshape(n, width, 3)
-        feats.append(seam_features(sk, root, rot.reshape(n, width, *rot.shape[1:]), 1.0 / fps))
     return seam_distance(feats[0][0], feats[1][0], feats[0][1]), valid
+
+
+def _sub_skeleton(skeleton: Skeleton, joints: Sequence[int]) -> Skeleton:
+    """The skeleton of ``joints`` alone (each with its ancestors, in skeleton order): a body
+    whose forward kinematics gives the same positions and rotations for them."""
+    new = {j: i for i, j in enumerate(joints)}
+    names = [skeleton.names[j] for j in joints]
+    kept = set(names)
+    return Skeleton(
+        names=names,
+        parents=np.array([new.get(int(skeleton.parents[j]), -1) for j in joints]),
+        offsets=skeleton.offsets[list(joints)],
+        channels=[skeleton.channels[j] for j in joints],
+        end_sites={new[j]: off for j, off in skeleton.end_sites.items() if j in new},
+        canonical={k: v for k, v in skeleton.canonical.items() if v in kept},
+    )

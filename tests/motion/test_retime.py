@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fk import forward_kinematics
-from dancegraph.motion.retime import resample, retime, sample
+from dancegraph.motion.retime import resample, retime, sample, sample_runs
 
 
 @pytest.fixture(scope="module")
@@ -110,3 +110,21 @@ def test_song_phase_counts_beats_across_bars():
     np.testing.assert_allclose(phase(bars[:, :4].ravel()), np.arange(12), atol=1e-12)
     # a gap between bars 1 and 2 belongs to bar 1: its closing downbeat is bar 2's first beat
     assert phase(np.array([4.5]))[0] < 8.0 and phase(np.array([6.5]))[0] == pytest.approx(12.0)
+
+
+def test_sample_runs_is_each_run_sampled_alone(salsa):
+    """``sample_runs`` (one slerp for many runs) returns each run's ``sample``, one after the
+    other, and with ``joints`` those joints' columns of it; frames outside a clip clamp."""
+    runs = [salsa.slice(0, 200), salsa.slice(150, 420), salsa.slice(300, 310)]
+    rng = np.random.default_rng(2)
+    frames = [
+        rng.uniform(-3.0, m.n_frames + 3.0, n) for m, n in zip(runs, (50, 7, 30), strict=True)
+    ]
+    root, rot = sample_runs(runs, frames)
+    alone = [sample(m, f) for m, f in zip(runs, frames, strict=True)]
+    np.testing.assert_array_equal(root, np.concatenate([a.root_positions for a in alone]))
+    np.testing.assert_array_equal(rot, np.concatenate([a.rotations for a in alone]))
+    joints = [0, 3, 4, 17]
+    some_root, some = sample_runs(runs, frames, joints)
+    np.testing.assert_array_equal(some_root, root)
+    np.testing.assert_array_equal(some, rot[:, joints])

@@ -12,9 +12,18 @@ from dancegraph.metrics.smoothness import Reference, seam_report
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fk import forward_kinematics
-from dancegraph.motion.retime import NODE_BEATS, TURN_BEATS, song_phase
+from dancegraph.motion.retime import NODE_BEATS, TURN_BEATS, node_warp, sample, song_phase
 from dancegraph.motion.skeleton import Motion
-from dancegraph.motion.stitch import hand_over, seam_distance, seam_features, stitch
+from dancegraph.motion.stitch import (
+    BLEND_MAX_S,
+    BLEND_MIN_S,
+    MAX_OFFSET_ACC,
+    hand_over,
+    limb_reach,
+    seam_distance,
+    seam_features,
+    stitch,
+)
 from dancegraph.render import bar_frames
 
 BEAT = 21.5  # frames per beat of a salsa bar at ~168 BPM read at 60 fps
@@ -142,6 +151,150 @@ def test_hand_over_continues_pose_and_velocity(pool):
     assert np.abs(r_pos[0] - p_pos[1]).max() > 0.02
     raw_jump = np.linalg.norm((r_pos[1] - p_pos[0]) / 2 * FPS - v_p, axis=-1).max()
     assert jump < 0.2 * raw_jump
+
+
+def _turned(motion: Motion, turn: float, pivot: np.ndarray, target: np.ndarray) -> Motion:
+    q = quat.from_y_angle(np.float64(turn))
+    rel = motion.root_positions - pivot * [1.0, 0.0, 1.0]
+    root = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel) + target * [1.0, 0.0, 1.0]
+    rot = motion.rotations.copy()
+    rot[:, 0] = quat.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    return Motion(motion.skeleton, motion.fps, root, rot)
+
+
+def _hand_over_written_out(before, after, segment, blend, reach):
+    """The hand-over of one seam written out step by step (module docstring of stitch): turn
+    and move q onto p's ground at the cut, then decay the offsets of the root and of every
+    joint along Bollo's quintic, each over the shortest length its acceleration bound allows."""
+    fps = segment.fps
+    turn = float(
+        quat.heading_angle(before.rotations[1, 0]) - quat.heading_angle(after.rotations[1, 0])
+    )
+    pivot, target = after.root_positions[1].copy(), before.root_positions[1].copy()
+    segment = _turned(segment, turn, pivot, target)
+    if not blend or segment.n_frames < 2:
+        return segment, (turn, pivot, target), 0
+    q3 = _turned(after, turn, pivot, target)
+    p_root, q_root = before.root_positions, q3.root_positions
+    x0 = p_root[1] - q_root[1]
+    v0 = 0.5 * ((p_root[2] - p_root[0]) - (q_root[2] - q_root[0]))
+    p_rot = before.rotations
+    q_rot = quat.same_hemisphere(q3.rotations, p_rot)
+
+    def rotvec(a, b):  # the rotation taking b to a
+        return quat.to_rotvec(quat.multiply(a, quat.conjugate(b)))
+
+    x0r = rotvec(p_rot[1], q_rot[1])
+    v0r = 0.5 * (rotvec(p_rot[2], p_rot[0]) - rotvec(q_rot[2], q_rot[0]))
+    least = max(1, int(round(BLEND_MIN_S * fps)))
+    top = max(least, min(segment.n_frames, int(round(BLEND_MAX_S * fps))))
+
+    def length(size, speed):
+        t = 8.0 * speed + np.sqrt(64.0 * speed**2 + 80.0 * MAX_OFFSET_ACC * size)
+        return np.clip(np.ceil(t / (2.0 * MAX_OFFSET_ACC) * fps), least, top)
+
+    def decay(x0, v0, T, n):
+        T = np.broadcast_to(T, x0.shape)
+        t = np.arange(n, dtype=float).reshape((-1,) + (1,) * x0.ndim)
+        a0 = (-8.0 * v0 * T - 20.0 * x0) / T**2
+        A = -(a0 * T**2 + 6.0 * v0 * T + 12.0 * x0) / (2.0 * T**5)
+        B = (3.0 * a0 * T**2 + 16.0 * v0 * T + 30.0 * x0) / (2.0 * T**4)
+        C = -(3.0 * a0 * T**2 + 12.0 * v0 * T + 20.0 * x0) / (2.0 * T**3)
+        x = A * t**5 + B * t**4 + C * t**3 + 0.5 * a0 * t**2 + v0 * t + x0
+        return np.where(t < T, x, 0.0)
+
+    reach = np.maximum(reach, 0.1)[:, None]
+    n_pos = length(np.linalg.norm(x0), np.linalg.norm(v0) * fps)
+    n_rot = length(
+        np.linalg.norm(x0r, axis=-1, keepdims=True) * reach,
+        np.linalg.norm(v0r, axis=-1, keepdims=True) * reach * fps,
+    )
+    n = int(min(segment.n_frames, max(float(n_pos), float(n_rot.max()))))
+    root = segment.root_positions.copy()
+    root[:n] += decay(x0, v0, n_pos, n)
+    rot = segment.rotations.copy()
+    offsets = quat.from_rotvec(decay(x0r, v0r, n_rot, n))
+    rot[:n] = quat.normalize(quat.multiply(offsets, quat.same_hemisphere(rot[:n], offsets)))
+    return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), n
+
+
+def _stitch_bar_by_bar(pieces, bar_beats, frames, cuts, flow):
+    """The dance ``stitch`` makes on the cuts it chose, one bar and one hand-over at a time:
+    each bar's segment sampled alone, then handed over (``_hand_over_written_out``) from the
+    previous bar's node, on the ground the previous hand-over put that one."""
+    phase = song_phase(bar_beats)
+
+    def source(b, k):
+        return node_warp(pieces[b][1])(phase(np.asarray(k) / FPS) - 4.0 * b)
+
+    bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]])
+    reach = limb_reach(pieces[0][0].skeleton)
+    roots, rots, blends, transform = [], [], [], None
+    for b, (motion, _) in enumerate(pieces):
+        seg = sample(motion, source(b, np.arange(bounds[b], bounds[b + 1])))
+        if b > 0:
+            c = int(bounds[b])
+            prev = sample(pieces[b - 1][0], source(b - 1, np.arange(c - 1, c + 2)))
+            if transform is not None:
+                prev = _turned(prev, *transform)
+            now = sample(motion, source(b, np.arange(c - 1, c + 2)))
+            prev.fps = now.fps = seg.fps = FPS
+            seg, transform, n = _hand_over_written_out(prev, now, seg, not flow[b - 1], reach)
+            blends.append(n)
+        roots.append(seg.root_positions)
+        rots.append(seg.rotations)
+    return np.concatenate(roots), np.concatenate(rots), np.asarray(blends)
+
+
+def test_stitch_is_the_bar_by_bar_dance(pool, takes):
+    """``stitch`` samples every bar in one go and hands over at all seams at once: the dance is
+    the one made bar by bar and seam by seam, written out (within 1e-9: positions in m,
+    quaternion components), on graph-like chains of real bars with uneven song beats and on a
+    take that continues (no seam); ``hand_over`` alone is the written-out hand-over too."""
+    take = takes[0]
+    starts = 200.0 + 4 * BEAT * np.arange(4)
+    cases = [
+        (_graph_chain(pool, 25, seed=2), _song(25, wobble=0.1, seed=5)),
+        (_graph_chain(pool, 12, seed=3), _song(12, bar_s=1.4)),
+        (
+            [_piece(take, s) for s in starts] + _graph_chain(pool, 3, seed=4),
+            _song(7, bar_s=4 * BEAT / FPS),
+        ),
+    ]
+    for pieces, bar_beats in cases:
+        frames = bar_frames(bar_beats[:, [0, 4]], FPS)
+        dance, rep = stitch(pieces, bar_beats, frames, FPS)
+        assert rep["continuous"].any() and (~rep["continuous"]).sum() >= 3
+        root, rot, blends = _stitch_bar_by_bar(
+            pieces, bar_beats, frames, rep["cuts"], rep["continuous"]
+        )
+        np.testing.assert_allclose(dance.root_positions, root, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(dance.rotations, rot, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(rep["blend_frames"], blends)
+        # the cut search's distance (main joints alone) is the whole skeleton's at the cut
+        phase = song_phase(bar_beats)
+        for b in range(1, len(pieces)):
+            k = np.arange(rep["cuts"][b - 1] - 1, rep["cuts"][b - 1] + 2)
+            feats = []
+            for i in (b - 1, b):
+                m, beats = pieces[i]
+                x = sample(m, node_warp(beats)(phase(k / FPS) - 4.0 * i))
+                feats.append(
+                    seam_features(m.skeleton, x.root_positions[None], x.rotations[None], 1 / FPS)
+                )
+            whole = seam_distance(feats[0][0], feats[1][0], feats[0][1])[0, 0]
+            assert rep["distance"][b - 1] == pytest.approx(whole, abs=1e-9)
+    (pm, pb), (qm, qb) = pool[5], pool[31]
+    c, k = int(round(pb[6])), int(round(qb[2]))
+    before, after, segment = pm.slice(c - 1, c + 2), qm.slice(k - 1, k + 2), qm.slice(k, k + 40)
+    for blend in (True, False):
+        got, transform, n = hand_over(before, after, segment, blend=blend)
+        want, transform_w, n_w = _hand_over_written_out(
+            before, after, segment, blend, limb_reach(segment.skeleton)
+        )
+        assert n == n_w and (n > 0) == blend and transform[0] == transform_w[0]
+        np.testing.assert_allclose(got.root_positions, want.root_positions, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got.rotations, want.rotations, rtol=0, atol=1e-9)
 
 
 def test_a_take_continuing_is_no_seam(takes):
