@@ -1,12 +1,17 @@
 """Sync of the rendered dance to its music (issue 24): the seeds' metrics beside their chance rows.
 
-Usage: ``python bench/bench_sync.py [--generated N] [--no-cc] [--alternatives K] [--out DIR]``.
+Usage: ``python bench/bench_sync.py [--generated N] [--no-cc] [--real DIR [--real-per-genre K]]
+[--alternatives K] [--out DIR]``.
 
 The harness's Table-3 analog (``dancegraph.eval``: rows ``ours``, ``no_rhythm``,
 ``random_walk``, every dance rendered and measured at 60 fps) on the cmu-salsa graph, imported
 and built here from the shared mocap, for two song sets: the CC recordings and N generated songs
 (``music.generator``, seeds 3000…); on the generated songs also the generated demo library,
-whose accents sit exactly on its bars' signatures (the exact-truth reference). Per set it prints
+whose accents sit exactly on its bars' signatures (the exact-truth reference); with ``--real``
+(default ``$DANCEGRAPH_REAL_MUSIC``) also real recordings from outside the project: the audio
+files of ``DIR/audio`` (or ``DIR``), the first K of each genre (the name up to its first ``.``
+or ``_``; GTZAN's 15-20 s clips in ``bench_real_music``'s layout: many short dances, so the
+mean over songs is steadier than the four CC songs alone). Per set it prints
 the sync table (value, half-beat and other-song chance rows) and, per song, ``ours`` against
 issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15, CM
 beat accuracy >= 0.85 and >= 1.5 x its half-beat chance. ``metrics.json`` and ``report.html``
@@ -18,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import sys
 import tempfile
 import time
@@ -26,6 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from dancegraph.errors import DanceGraphError  # noqa: E402
 from dancegraph.eval import harness  # noqa: E402
 from dancegraph.graph import artifact  # noqa: E402
 from dancegraph.graph.build import build_graph  # noqa: E402
@@ -93,12 +101,31 @@ def _targets(metrics: dict) -> int:
     return missed
 
 
+def real_songs(folder: Path, per_genre: int) -> list[Path]:
+    """The first ``per_genre`` audio files (by name) of each genre in ``folder/audio`` (or
+    ``folder``); the genre is the name up to its first ``.`` or ``_``."""
+    audio = folder / "audio" if (folder / "audio").is_dir() else folder
+    suffixes = {".wav", ".ogg", ".flac", ".mp3"}
+    picked: dict[str, list[Path]] = {}
+    for path in sorted(p for p in audio.iterdir() if p.suffix.lower() in suffixes):
+        genre = re.split(r"[._]", path.name, maxsplit=1)[0]
+        if len(picked.setdefault(genre, [])) < per_genre:
+            picked[genre].append(path)
+    return [p for paths in picked.values() for p in paths]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--generated", type=int, default=4, help="generated songs (default 4)")
     ap.add_argument("--no-cc", action="store_true", help="skip the CC recordings")
     ap.add_argument("--alternatives", type=int, default=3)
     ap.add_argument("--out", default=None, help="folder for metrics.json / report.html")
+    ap.add_argument(
+        "--real",
+        default=os.environ.get("DANCEGRAPH_REAL_MUSIC"),
+        help="folder of real recordings (default $DANCEGRAPH_REAL_MUSIC; none: skipped)",
+    )
+    ap.add_argument("--real-per-genre", type=int, default=3, help="real songs per genre")
     args = ap.parse_args()
     shared = shared_dir() / "datasets"
     if not (shared / "mocap" / "cmu-salsa").is_dir():
@@ -120,6 +147,14 @@ def main() -> int:
         if not args.no_cc:
             cc = sorted((shared / "music" / "cc").glob("*.ogg"))
             sets.append(("CC songs, cmu-salsa", salsa, [harness.load_song(p) for p in cc]))
+        if args.real:
+            real = []
+            for path in real_songs(Path(args.real), args.real_per_genre):
+                try:
+                    real.append(harness.load_song(path))
+                except DanceGraphError as exc:  # reported, the rest go on
+                    print(f"{path.name}: skipped ({exc.code})")
+            sets.append(("real recordings, cmu-salsa", salsa, real))
         if args.generated:
             wavs = [
                 write_song(generate_song(3000 + i), tmp / "songs", f"generated-{3000 + i}")[0]
