@@ -32,7 +32,7 @@ RECREATE_WEIGHT = 100.0  # per bar whose motif differs from the reference take's
 #: the rhythm term's cost, in units of G_r, per unit of a node's anchoring below the graph's
 #: best-anchored node's (``anchor_costs``); 0 switches the anchoring off (docs/rendering.md,
 #: Anchoring)
-ANCHOR_WEIGHT = 8.0
+ANCHOR_WEIGHT = 4.0
 
 
 # --------------------------------------------------------------------------------------------
