@@ -73,16 +73,16 @@ def root_heading(motion: Motion, frame: int = 0) -> float:
 
 def place(motion: Motion, position_xz: tuple[float, float], heading: float) -> Motion:
     """Move and turn ``motion`` about the vertical so frame 0's root is at ``position_xz`` facing ``heading``."""
-    turn = heading - root_heading(motion, 0)
-    q = quat.from_y_angle(np.float64(turn))
-    root = motion.root_positions.copy()
-    origin = root[0].copy()
-    rel = root - origin
-    rel = quat.rotate(np.broadcast_to(q, rel.shape[:-1] + (4,)), rel)
-    root = rel + np.array([position_xz[0], origin[1], position_xz[1]])
-    root[:, 1] = motion.root_positions[:, 1]
+    from dancegraph.motion.stitch import turn_on_ground
+
     rot = motion.rotations.copy()
-    rot[:, 0] = quat.multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    root, rot[:, 0] = turn_on_ground(
+        motion.root_positions,
+        rot[:, 0],
+        heading - root_heading(motion, 0),
+        motion.root_positions[0],
+        np.array([position_xz[0], 0.0, position_xz[1]]),
+    )
     return Motion(motion.skeleton, motion.fps, root, rot)
 
 

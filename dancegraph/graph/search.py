@@ -64,6 +64,7 @@ from dancegraph.graph.artifact import MotionGraph
 from dancegraph.graph.problem import DENSE_LIMIT, Problem, anchor_costs, compile_spec
 from dancegraph.motion import quat
 from dancegraph.motion.skeleton import Motion
+from dancegraph.motion.stitch import turn_on_ground
 from dancegraph.spec import Spec
 
 MEMO_BUDGET = 1 << 23  # most (charged transition, state) costs kept across passes
@@ -320,14 +321,14 @@ def placed_motion(
 ) -> Motion:
     """The node's bar turned and moved so its first frame's root sits at ``placement`` (x, z, yaw)."""
     m = graph.node_motion(node, fps)
-    yaw0 = quat.heading_angle(m.rotations[0, 0])
-    turn = quat.from_y_angle(np.array(placement[2] - yaw0))
-    rel = m.root_positions - m.root_positions[0] * np.array([1.0, 0.0, 1.0])
-    root = quat.rotate(np.broadcast_to(turn, rel.shape[:-1] + (4,)), rel) + np.array(
-        [placement[0], 0.0, placement[1]]
-    )
     rot = m.rotations.copy()
-    rot[:, 0] = quat.multiply(np.broadcast_to(turn, rot[:, 0].shape), rot[:, 0])
+    root, rot[:, 0] = turn_on_ground(
+        m.root_positions,
+        rot[:, 0],
+        placement[2] - quat.heading_angle(m.rotations[0, 0]),
+        m.root_positions[0],
+        np.array([placement[0], 0.0, placement[1]]),
+    )
     return Motion(skeleton=m.skeleton, fps=m.fps, root_positions=root, rotations=rot)
 
 

@@ -166,7 +166,7 @@ def _lengths(
     return np.clip(np.ceil(t * fps), least, np.maximum(least, most))
 
 
-def _turn(
+def turn_on_ground(
     root: np.ndarray,
     rot0: np.ndarray,
     turn: float | np.ndarray,
@@ -175,7 +175,9 @@ def _turn(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Root positions ``(..., F, 3)`` and root rotations ``(..., F, 4)`` turned by ``turn``
     radians ``(...)`` about +Y around ground point ``pivot (..., 3)`` and moved so that the
-    pivot lands on ground point ``target (..., 3)`` (heights kept)."""
+    pivot lands on ground point ``target (..., 3)`` (heights kept). Why one function: a seam's
+    hand-over, the render's start placement (``render.place``) and the search's placed bars
+    (``search.placed_motion``) all put a motion on the ground this way."""
     q = quat.from_y_angle(np.asarray(turn, dtype=np.float64))[..., None, :]
     ground = np.array([1.0, 0.0, 1.0])
     rel = root - np.asarray(pivot)[..., None, :] * ground
@@ -209,9 +211,9 @@ def _offsets(
     """The offsets between p and q at S cuts and how long each decays.
 
     ``p_root (S, 3, 3)``, ``p_rot (S, 3, J, 4)``: p's frames before, at and after each cut;
-    ``q_root``, ``q_rot``: q's, already on p's ground (``_turn``); ``room (S,)`` frames a decay
-    may take (``BLEND_MAX_S`` caps it), ``length (S,)`` frames of q's segment after the cut;
-    ``reach (J,)`` the skeleton's ``limb_reach``."""
+    ``q_root``, ``q_rot``: q's, already on p's ground (``turn_on_ground``); ``room (S,)`` frames a
+    decay may take (``BLEND_MAX_S`` caps it), ``length (S,)`` frames of q's segment after the
+    cut; ``reach (J,)`` the skeleton's ``limb_reach``."""
     x0 = p_root[:, 1] - q_root[:, 1]
     v0 = 0.5 * ((p_root[:, 2] - p_root[:, 0]) - (q_root[:, 2] - q_root[:, 0]))
     q_rot = quat.same_hemisphere(q_rot, p_rot)
@@ -269,7 +271,7 @@ def hand_over(
     root position and every joint rotation and of their velocities are decayed over the frames
     after the cut (at most ``most``, default the segment's length); ``reach``: the skeleton's
     ``limb_reach`` when the caller has it. Returns the segment, the
-    ground transform applied (turn, pivot, target: see ``_turn``) and the longest decay in
+    ground transform applied (turn, pivot, target: see ``turn_on_ground``) and the longest decay in
     frames.
     """
     fps = segment.fps
@@ -278,11 +280,11 @@ def hand_over(
     )
     pivot, target = after.root_positions[1].copy(), before.root_positions[1].copy()
     rot = segment.rotations.copy()
-    root, rot[:, 0] = _turn(segment.root_positions, rot[:, 0], turn, pivot, target)
+    root, rot[:, 0] = turn_on_ground(segment.root_positions, rot[:, 0], turn, pivot, target)
     if not blend or segment.n_frames < 2:
         return Motion(segment.skeleton, fps, root, rot), (turn, pivot, target), 0
     q_rot = after.rotations.copy()
-    q_root, q_rot[:, 0] = _turn(after.root_positions, q_rot[:, 0], turn, pivot, target)
+    q_root, q_rot[:, 0] = turn_on_ground(after.root_positions, q_rot[:, 0], turn, pivot, target)
     off = _offsets(
         before.root_positions[None],
         before.rotations[None],
@@ -372,18 +374,18 @@ def stitch(
         q_heading = quat.heading_angle(q_rot[:, 1, 0])
         for s in range(n_seams):
             if s > 0:
-                p_root[s], p_rot[s, :, 0] = _turn(
+                p_root[s], p_rot[s, :, 0] = turn_on_ground(
                     p_root[s], p_rot[s, :, 0], turns[s - 1], pivots[s - 1], targets[s - 1]
                 )
             turns[s] = float(quat.heading_angle(p_rot[s, 1, 0]) - q_heading[s])
             targets[s] = p_root[s, 1]
-        q_root, q_rot[:, :, 0] = _turn(q_root, q_rot[:, :, 0], turns, pivots, targets)
+        q_root, q_rot[:, :, 0] = turn_on_ground(q_root, q_rot[:, :, 0], turns, pivots, targets)
         # every later bar's segment onto its ground
         start = bounds[1:-1] - bounds[0]  # the cuts, in the dance's frames
         length = np.diff(bounds)[1:]
         bar = np.repeat(np.arange(n_seams), length)
         later = slice(int(start[0]), None)
-        moved, turned = _turn(
+        moved, turned = turn_on_ground(
             root[later, None], rot[later, 0, None], turns[bar], pivots[bar], targets[bar]
         )
         root[later], rot[later, 0] = moved[:, 0], turned[:, 0]
