@@ -510,9 +510,8 @@ def _add_eval(sub) -> None:
             )
         parsed = _read_spec(args.spec, dataset=args.dataset)
         graph = open_graph(store, args.dataset)
-        songs = [
-            load_song(a, graph=graph, spec=parsed) for a in args.audio
-        ]  # bad audio: before the library
+        # bad audio fails here, before the library is loaded
+        songs = [load_song(a, graph=graph, spec=parsed) for a in args.audio]
         lib = load_library(graph, load_dataset(store, args.dataset))
         metrics = evaluate(
             songs,

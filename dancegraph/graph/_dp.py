@@ -3,18 +3,18 @@
 One forward pass over the *chain* of tied variables (first appearances in song order), with no
 beam: every node keeps its cheapest state (up to ``slots`` states when they end in different
 places, or come from different predecessors), so without ties, trajectory terms and the novelty
-cost the pass is the exact Viterbi. Each state carries its root pose so stage bounds and waypoints are costed on
-the trajectory. Song bars that are not chain steps are copies of earlier variables (repeat and
-mirror ties); their nodes come from the state's own history (back pointers). A chain bar's incoming
-transition is relaxed along graph edges (times its count in the song: copies repeat it); every
-other transition is *charged*: each distinct (variable, parity) → (variable, parity) transition
-once, times its count, as soon as the state's history decides both of its ends. Charges are kept
-per state in a cache that outlives the pass (``memo``): the passes for alternatives mostly
-revisit the same histories. Copies' root poses are walked in song order. The novelty cost reads each state's nodes at its last
-chain steps (``recent``, one row per state, rebuilt from the predecessor's row after each step);
-where one state per node is pulled, a node checks the row of its cheapest in-edge's state and only
-where that repeats a node pulls again with the cost (it only raises a value), among the cheapest
-state of each source node, as the pull does without it.
+cost the pass is the exact Viterbi. Each state carries its root pose so stage bounds and waypoints
+are costed on the trajectory. Song bars that are not chain steps are copies of earlier variables
+(repeat and mirror ties); their nodes come from the state's own history (back pointers). A chain
+bar's incoming transition is relaxed along graph edges (times its count in the song: copies repeat
+it); every other transition is *charged*: each distinct (variable, parity) → (variable, parity)
+transition once, times its count, as soon as the state's history decides both of its ends. Charges
+are kept per state in a cache that outlives the pass (``memo``): the passes for alternatives mostly
+revisit the same histories. Copies' root poses are walked in song order. The novelty cost reads
+each state's nodes at its last chain steps (``recent``, one row per state, rebuilt from the
+predecessor's row after each step); where one state per node is pulled, a node checks the row of
+its cheapest in-edge's state and only where that repeats a node pulls again with the cost (it only
+raises a value), among the cheapest state of each source node, as the pull does without it.
 
 The arrays travel in three named tuples (``Graph``, ``Chain``, ``Track``) instead of long
 argument lists. The hot loops read the fields they need once, into locals, and give helpers plain

@@ -1,10 +1,10 @@
 """Explain a path: per bar the chosen node and its cost breakdown, plus the constraint check.
 
-Per bar ``t``: ``style`` = λ10·λ12‖z_Mt − z_Dn‖, ``rhythm`` = λ10·λ13 (min_k G_r + A_n) (A_n the node's
-anchoring cost, ``problem.anchor_costs``), ``transition`` =
-λ11·T(n_{t−1}, n_t) (the edge cost; an off-graph transition, only possible between structure
-copies, costs its on-demand T plus δT and is flagged), ``structure`` = ζ per violated repeat/mirror
-pair whose later bar is t, ``user`` = stage and waypoint penalties and choreography terms.
+Per bar ``t``: ``style`` = λ10·λ12‖z_Mt − z_Dn‖, ``rhythm`` = λ10·λ13 (min_k G_r + A_n) (A_n the
+node's anchoring cost, ``problem.anchor_costs``), ``transition`` = λ11·T(n_{t−1}, n_t) (the edge
+cost; an off-graph transition, only possible between structure copies, costs its on-demand T plus
+δT and is flagged), ``structure`` = ζ per violated repeat/mirror pair whose later bar is t,
+``user`` = stage and waypoint penalties and choreography terms.
 """
 
 from __future__ import annotations

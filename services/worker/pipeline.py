@@ -2,10 +2,10 @@
 
 Each stage is idempotent and leaves nothing half-written:
 
-- analyze: cached by the analysis code's version, the upload's sha256 and the style tempo range (the spec's, else the one
-  the dataset's graph declares: ``style_tempo_range``; the bars count the octave that fits it)
-  at ``analysis_key`` (the same song is analysed once per range, whoever asked); written
-  atomically by the object store.
+- analyze: cached by the analysis code's version, the upload's sha256 and the style tempo
+  range (the spec's, else the one the dataset's graph declares: ``style_tempo_range``; the bars
+  count the octave that fits it) at ``analysis_key`` (the same song is analysed once per range
+  and release, whoever asked); written atomically by the object store.
 - search: adds the graph's learned music terms where it has learned models
   (``with_learned_terms``: they need the audio, which only the worker holds), then asks the
   graph store (``services.graphstore.client``: in-process in the embedded
