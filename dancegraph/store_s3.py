@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 import tempfile
 import threading
 import time
@@ -307,7 +308,7 @@ class S3Store(ObjectStore):
                     st = path.stat()
                 except FileNotFoundError:
                     continue
-                if path.is_file():
+                if stat.S_ISREG(st.st_mode):
                     files.append((st.st_mtime, st.st_size, path))
             total = sum(size for _, size, _ in files)
             freed = 0
@@ -317,8 +318,8 @@ class S3Store(ObjectStore):
                     break
                 if path == spare:
                     continue
-                for folder in path.parents:
-                    if folder == self.cache or self.cache not in folder.parents:
+                for folder in path.parents:  # rglob's paths lie under the cache
+                    if folder == self.cache:
                         break
                     (folder / _COMPLETE).unlink(missing_ok=True)
                 path.unlink(missing_ok=True)
