@@ -142,6 +142,7 @@ def render_path(
     duration_s: float | None = None,
     placements: np.ndarray | None = None,
     foot_cleanup: bool = True,
+    land_stops: bool = True,
 ) -> tuple[Motion, dict]:
     """The dance of one path: ``nodes[b]`` (node ids) danced on music bar b, whose beats are
     ``bar_beats[b]`` (``(B, 5)`` s: 4 beats and the next downbeat, ``analysis.bar_beats``).
@@ -156,6 +157,8 @@ def render_path(
     (``Alternative.placements``; default: the origin facing +Z, chained by the stitch). The
     stitched dance is moved there and the small drift between stitching and the plan is spread
     linearly over each bar, so stage bounds and waypoints the search honoured hold on the file.
+    ``land_stops``: the stitched dance's stops are moved onto the song's beats
+    (``stops_on_beats``) before it is placed and its feet cleaned.
     """
     from dancegraph.motion.contacts import clean_foot_skate
     from dancegraph.motion.stitch import CUT_BEATS, stitch
@@ -190,8 +193,11 @@ def render_path(
             code="render_failed",
         )
     seam = ~cuts["continuous"]
+    seams = cuts["cuts"][seam]
+    if land_stops:
+        dance, seams = stops_on_beats(dance, bar_beats, int(frames[0, 0]), seams)
     report: dict = {
-        "seams": [int(s) for s in cuts["cuts"][seam]],
+        "seams": [int(s) for s in seams],
         "seam_bars": [int(b) + 1 for b in np.flatnonzero(seam)],
         "cut_beats": [round(float(x), 3) for x in cuts["cut_beats"][seam]],
     }
@@ -222,6 +228,55 @@ def render_path(
         "z": [float(xz[:, 1].min()), float(xz[:, 1].max())],
     }
     return dance, report
+
+
+#: beats: how far from a song beat a stop of the stitched dance may be moved onto it (the
+#: build's ``BuildParams.accent_tolerance``: a stop nearer the half beat is left where it is)
+STOP_TOLERANCE = 0.45
+#: bound on how much ``stops_on_beats`` may speed up or slow down a beat interval (the build's
+#: ``accent_max_speed``: the stop moves back until the interval is at it)
+STOP_MAX_SPEED = 1.5
+#: frames per second (at most) the stitched dance's stops are read at: every k-th frame of a
+#: faster dance, for half the forward kinematics at 60 fps; the stops' sub-frame refinement
+#: keeps them within a few milliseconds, far inside ``STOP_TOLERANCE``
+STOP_FPS = 30.0
+
+
+def stops_on_beats(
+    dance: Motion, bar_beats: np.ndarray, start_frame: int, frames: np.ndarray
+) -> tuple[Motion, np.ndarray]:
+    """The stitched ``dance`` (song frames from ``start_frame`` on, at ``dance.fps``) re-timed
+    so its stops (``rhythm.motion.motion_stops``) land on the song's beats ``bar_beats (B, 5)``
+    s: the song's beats moved onto the stops near them (``retime.accent_anchors``, within
+    ``STOP_TOLERANCE`` of a beat, no beat interval sped up or slowed down beyond
+    ``STOP_MAX_SPEED``) and the dance sampled through the map from song time to those
+    (``retime.beat_map``). Returns the warped dance (same frame count and rate) and ``frames
+    (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall. Why: the
+    nodes' beats are laid on the song's, but stops made by the hand-overs, and the stops of
+    nodes whose grid was read from motion, sit at any phase of the beat; the viewer sees the
+    stitched dance. A skeleton without the canonical joints is returned unchanged."""
+    from dancegraph.motion.retime import accent_anchors, beat_map, sample
+    from dancegraph.rhythm.motion import motion_stops
+
+    fps = float(dance.fps)
+    frames = np.asarray(frames)
+    step = max(1, int(fps // STOP_FPS))
+    coarse = Motion(
+        dance.skeleton, fps / step, dance.root_positions[::step], dance.rotations[::step]
+    )
+    try:
+        stops = motion_stops(coarse) + start_frame / fps
+    except DanceGraphError as exc:
+        if exc.code != "skeleton_unmapped":
+            raise
+        return dance, frames
+    moved = accent_anchors(bar_beats, stops, STOP_TOLERANCE, STOP_MAX_SPEED)
+    song = (start_frame + np.arange(dance.n_frames)) / fps
+    source = beat_map(bar_beats, moved, song) * fps - start_frame
+    warped = sample(dance, source)
+    warped.fps = fps
+    landed = np.interp(frames - start_frame, source, np.arange(dance.n_frames)) + start_frame
+    return warped, np.round(landed).astype(np.int64)
 
 
 def stage_violation(root_xz: np.ndarray, stage) -> float:
@@ -292,6 +347,7 @@ def render(
             duration_s=float(analysis.duration_s),
             placements=alt.get("placements"),
             foot_cleanup=spec.output.foot_cleanup,
+            land_stops=spec.output.stops_on_beats,
         )
         outside = stage_violation(dance.root_positions[:, [0, 2]], spec.stage)
         report["stage"]["outside_m"] = outside

@@ -175,6 +175,12 @@ class Output(_Strict):
     formats: list[Format] = Field(default_factory=_all_formats, min_length=1)
     fps: Literal[30, 60] = 30
     foot_cleanup: bool = True
+    stops_on_beats: bool = Field(
+        True,
+        description="re-time the stitched dance so its stops (the moments the dancer halts) "
+        "that lie within 0.45 beat of a song beat land on it, no beat interval sped up or "
+        "slowed down more than 1.5x (off: only the nodes' own beats are laid on the song's)",
+    )
     rig: str | None = Field(
         None,
         pattern=r"^[A-Za-z0-9-]{1,36}$",

@@ -430,6 +430,7 @@ def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec)
         duration_s=float(analysis.duration_s),
         placements=placements,
         foot_cleanup=spec.output.foot_cleanup,
+        land_stops=spec.output.stops_on_beats,
     )
 
 

@@ -55,7 +55,14 @@ from dancegraph.graph import artifact, choreography
 from dancegraph.motion import quat
 from dancegraph.motion.fk import canonical_positions, fk_arrays
 from dancegraph.motion.mirror import mirror
-from dancegraph.motion.retime import BEAT0, NODE_BEATS, Warp, node_warp, sample
+from dancegraph.motion.retime import (
+    BEAT0,
+    NODE_BEATS,
+    Warp,
+    accent_anchors,
+    node_warp,
+    sample,
+)
 from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.motion.stitch import (
     CUT_BEATS,
@@ -195,65 +202,6 @@ class BarSet:
             frames=np.concatenate(frames),
             clip_tags=dict(clip_tags or {}),
         )
-
-
-def accent_anchors(
-    bar_beats: np.ndarray, accents: np.ndarray, tolerance: float = 0.45, max_speed: float = 1.5
-) -> np.ndarray:
-    """A take's bar beats moved onto its own motion accents: ``(n, 5)`` s, like ``bar_beats``.
-
-    ``bar_beats (n, 5)``: the take's bars' beat times (s, its beat grid); ``accents (K,)``: the
-    take's motion beats (s; the build gives ``rhythm.motion.motion_stops``). Each distinct grid
-    beat (a beat shared by two adjoining bars counts once, so both keep sharing it) with an
-    accent within ``tolerance`` of its bar's beat length moves onto that accent; the beats
-    between moved ones shift by the linear interpolation of their shifts (constant beyond the
-    first and last). Where a beat interval of a bar would be stretched or squeezed by more than
-    ``max_speed`` (ratio to the grid's interval), the end of it that moved further moves back
-    until the interval is at the bound (where an end is not anchored, the anchor that moved
-    further is dropped), until no interval is. Why: the renderer maps a node's beats onto the
-    song's (``retime.node_warp``), so the accents land on the song's beats; a steady grid
-    leaves them at any phase of the beat.
-    """
-    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
-    acc = np.sort(np.asarray(accents, dtype=float).reshape(-1))
-    if bb.size == 0 or acc.size == 0:
-        return bb.copy()
-    flat = bb.reshape(-1)
-    order = np.argsort(flat, kind="stable")
-    new = np.concatenate([[True], np.diff(flat[order]) > 1e-6])
-    group = np.empty(flat.size, dtype=np.int64)
-    group[order] = np.cumsum(new) - 1
-    times = flat[order][new]
-    beat_len = np.repeat((bb[:, 4] - bb[:, 0]) / 4.0, 5)
-    period = np.full(times.size, np.inf)
-    np.minimum.at(period, group, beat_len)
-    j = np.searchsorted(acc, times)
-    left, right = acc[np.maximum(j - 1, 0)], acc[np.minimum(j, acc.size - 1)]
-    near = np.where(times - left <= right - times, left, right)
-    shift = near - times
-    anchored = np.abs(shift) <= tolerance * period
-    grp = group.reshape(-1, 5)
-    lo, hi = grp[:, :4].reshape(-1), grp[:, 1:].reshape(-1)  # every bar's beat intervals
-    grid = times[hi] - times[lo]
-    clips = 0
-    while anchored.any():
-        d = np.interp(times, times[anchored], shift[anchored])
-        ratio = (times[hi] + d[hi] - times[lo] - d[lo]) / grid
-        bad = np.where(ratio > 0, np.maximum(ratio / max_speed, 1.0 / (ratio * max_speed)), np.inf)
-        worst = int(np.argmax(bad))
-        if bad[worst] <= 1.0 + 1e-9:
-            return (times + d)[group].reshape(-1, 5)
-        a, b = lo[worst], hi[worst]
-        if anchored[a] and anchored[b] and clips < 20 * times.size:
-            # the end that moved further goes back until the interval is at the bound
-            k, other = (a, b) if abs(shift[a]) > abs(shift[b]) else (b, a)
-            target = grid[worst] * (max_speed if ratio[worst] > 1 else 1.0 / max_speed)
-            shift[k] = d[other] + (target - grid[worst]) * (1.0 if k == b else -1.0)
-            clips += 1
-        else:  # an end follows its neighbours: drop the anchor that moved furthest near it
-            ends = [k for k in (a, b) if anchored[k]] or list(np.flatnonzero(anchored))
-            anchored[max(ends, key=lambda k: abs(shift[k]))] = False
-    return bb.copy()
 
 
 #: the phase concentration the dance's stops should reach on the song's beats (issue 24's R

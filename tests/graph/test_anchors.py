@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from dancegraph.graph.artifact import graph_from_arrays
-from dancegraph.graph.build import BarSet, BuildParams, accent_anchors, build_arrays, take_bars
+from dancegraph.graph.build import BarSet, BuildParams, build_arrays, take_bars
 from dancegraph.metrics.beats import phase_concentration
 from dancegraph.motion.demo import DemoClip, make_clip
 from dancegraph.motion.features import kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
-from dancegraph.motion.retime import Warp, sample
-from dancegraph.render import render_path
+from dancegraph.motion.retime import Warp, accent_anchors, sample
+from dancegraph.render import render_path, stops_on_beats
 from dancegraph.rhythm.motion import motion_stops
 
 ON_EVERY_BEAT = "01010101"  # slots 0, 2, 4, 6: a pause on each beat
@@ -100,9 +100,10 @@ def _graph(takes, anchors: bool):
 
 
 def test_rendered_pauses_land_on_the_song_beats():
-    """Every bar of the takes danced in turn on a song at another tempo with uneven beats: with
-    anchors (on the takes' Shiratori stops) the dance's kinematic beats (minima of mean joint
-    speed) gather on the song's beats (R >= 0.8), without them they do not."""
+    """Every bar of the takes danced in turn on a song at another tempo with uneven beats: the
+    dance's kinematic beats (minima of mean joint speed) gather on the song's beats (R >= 0.8)
+    with the build's anchors (on the takes' Shiratori stops) alone, with the renderer's
+    ``stops_on_beats`` alone, and with both; with neither they do not."""
     takes = [_off_grid_take(seed, tempo, 0.2) for seed, tempo in ((2, 104.0), (3, 118.0))]
     rng = np.random.default_rng(7)
     song_beats = np.cumsum(np.r_[1.0, 0.5 + rng.uniform(-0.03, 0.03, 48)])
@@ -112,11 +113,30 @@ def test_rendered_pauses_land_on_the_song_beats():
     for anchors in (False, True):
         g = _graph(takes, anchors)
         nodes = [f"t{b // 6 % 2}:{b % 6}" for b in range(12)]
-        dance, _ = render_path(g, nodes, bar_beats, fps, foot_cleanup=False)
-        found = _pauses(dance)
-        r[anchors] = phase_concentration(song_beats[:49], found)[0]
-    assert r[True] >= 0.8
-    assert r[False] < 0.5
+        for land in (False, True):
+            dance, _ = render_path(g, nodes, bar_beats, fps, foot_cleanup=False, land_stops=land)
+            r[anchors, land] = phase_concentration(song_beats[:49], _pauses(dance))[0]
+    assert r[True, False] >= 0.8
+    assert r[False, True] >= 0.8
+    assert r[True, True] >= 0.8
+    assert r[False, False] < 0.5
+
+
+def test_stops_on_beats_moves_stops_and_seams():
+    """``render.stops_on_beats`` on a dance whose pauses sit 0.1 s (a fifth of a beat) after
+    the song's beats: the pauses move onto the beats (within 1.5 frames), the frame count
+    stays, and a frame given (a seam) moves with the motion, 0.1 s earlier."""
+    motion, bars, _ = _off_grid_take(4, 120.0, 0.0)
+    song_bars = bars - 0.1
+    before = motion_stops(motion)
+    moved, seam = stops_on_beats(motion, song_bars, 0, np.array([120]))
+    assert moved.n_frames == motion.n_frames
+    beats = np.unique(song_bars)
+    inner = (beats > beats[0] + 0.3) & (beats < beats[-1] - 0.3)
+    for stops, off in ((before, 0.1), (motion_stops(moved), 0.0)):
+        near = np.abs(beats[inner][:, None] + off - stops[None, :]).min(axis=1)
+        assert inner.sum() >= 8 and np.all(near <= 1.5 / motion.fps)
+    assert abs(int(seam[0]) - (120 - round(0.1 * motion.fps))) <= 1
 
 
 def test_build_anchors_motion_read_grids_only(tmp_path):

@@ -176,3 +176,18 @@ def test_bad_paths_are_clear_errors(demo_graph, analysis, rendered, tmp_path: Pa
     with pytest.raises(DanceGraphError) as err:
         render(demo_graph, analysis, SearchResult([], {}), spec, tmp_path)
     assert err.value.code == "render_empty"
+
+
+def test_stops_on_beats_switch_reaches_the_files(demo_graph, analysis, rendered, tmp_path):
+    """``output.stops_on_beats`` (default on) re-times the written dance; off, the files hold
+    the dance without that step: same frames and seams' bars, other poses."""
+    out, _, _, _ = rendered
+    spec = _spec(output={"formats": ["bvh"], "fps": FPS, "stops_on_beats": False})
+    found = search(demo_graph, analysis, spec)
+    render(demo_graph, analysis, found, spec, tmp_path)
+    on, off = read_bvh(out / "alternatives/0.bvh"), read_bvh(tmp_path / "alternatives/0.bvh")
+    assert on.n_frames == off.n_frames
+    assert not np.allclose(on.rotations, off.rotations, atol=1e-4)
+    timelines = [json.loads((d / "timeline.json").read_text()) for d in (out, tmp_path)]
+    bars = [t["alternatives"][0]["seam_bars"] for t in timelines]
+    assert bars[0] == bars[1]
