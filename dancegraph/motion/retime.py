@@ -6,7 +6,9 @@ with the end slopes beyond them. A rendered bar maps song time to the source fra
 through two of them (``song_phase`` and ``node_warp``), so every beat of the node lands on the
 song's beat of the same number, the dance speeds up and slows down with uneven beats (turning
 from one beat's rate to the next on the beat, ``TURN_BEATS``), and the warp stays defined past
-the bar's ends, where the seam's cut may fall (docs/rendering.md).
+the bar's ends, where the seam's cut may fall (docs/rendering.md). The stitched dance is
+re-timed by the same construction (``beat_map``: the song's beats onto its stops near them,
+``accent_anchors``), as the build moves a take's grid beats onto its stops.
 """
 
 from __future__ import annotations

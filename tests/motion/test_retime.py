@@ -112,6 +112,30 @@ def test_song_phase_counts_beats_across_bars():
     assert phase(np.array([4.5]))[0] < 8.0 and phase(np.array([6.5]))[0] == pytest.approx(12.0)
 
 
+def test_beat_map_lands_each_beat_on_its_source_beat():
+    """``beat_map``: song beat k maps onto source beat k exactly, monotone everywhere, the
+    identity where both sides are the same beats (within 1 ms: the two maps' turns are not
+    exact inverses), straight (one rate) on the middle of each beat
+    interval (the turns sit within ``TURN_BEATS`` of the beats), and a shape mismatch is an
+    error."""
+    from dancegraph.motion.retime import TURN_BEATS, beat_map
+
+    song = np.array([[0.5, 1.0, 1.6, 2.0, 2.5], [2.5, 3.0, 3.4, 4.0, 4.5]])
+    moved = song + np.array([[0.1, -0.05, 0.12, 0.0, 0.08], [0.08, 0.1, -0.1, 0.02, 0.0]])
+    beats = np.r_[song[:, :4].ravel(), song[-1, 4]]
+    want = np.r_[moved[:, :4].ravel(), moved[-1, 4]]
+    np.testing.assert_allclose(beat_map(song, moved, beats), want, atol=1e-9)
+    t = np.linspace(0.0, 5.0, 5001)
+    assert (np.diff(beat_map(song, moved, t)) > 0).all()
+    np.testing.assert_allclose(beat_map(song, song, t), t, atol=1e-3)
+    a, b = beats[1], beats[2]  # the interval 1.0-1.6 s, its middle away from the turns
+    mid = np.linspace(a + (TURN_BEATS + 0.05) * (b - a), b - (TURN_BEATS + 0.05) * (b - a), 50)
+    rate = np.diff(beat_map(song, moved, mid)) / np.diff(mid)
+    np.testing.assert_allclose(rate, (want[2] - want[1]) / (b - a), rtol=1e-6)
+    with pytest.raises(ValueError):
+        beat_map(song, moved[:1], t)
+
+
 def test_sample_runs_is_each_run_sampled_alone(salsa):
     """``sample_runs`` (one slerp for many runs) returns each run's ``sample``, one after the
     other, and with ``joints`` those joints' columns of it; frames outside a clip clamp."""
