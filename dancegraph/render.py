@@ -254,7 +254,8 @@ def stops_on_beats(
     (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall. Why: the
     nodes' beats are laid on the song's, but stops made by the hand-overs, and the stops of
     nodes whose grid was read from motion, sit at any phase of the beat; the viewer sees the
-    stitched dance. A skeleton without the canonical joints is returned unchanged."""
+    stitched dance. A dance with no stop near a beat, or on a skeleton without the canonical
+    joints, is returned as it is."""
     from dancegraph.motion.retime import accent_anchors, beat_map, sample
     from dancegraph.rhythm.motion import motion_stops
 
@@ -271,6 +272,8 @@ def stops_on_beats(
             raise
         return dance, frames
     moved = accent_anchors(bar_beats, stops, STOP_TOLERANCE, STOP_MAX_SPEED)
+    if np.array_equal(moved, bar_beats):
+        return dance, frames
     song = (start_frame + np.arange(dance.n_frames)) / fps
     source = beat_map(bar_beats, moved, song) * fps - start_frame
     warped = sample(dance, source)

@@ -17,6 +17,7 @@ from dancegraph.motion.demo import DemoClip, make_clip
 from dancegraph.motion.features import kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import Warp, accent_anchors, sample
+from dancegraph.motion.skeleton import Motion
 from dancegraph.render import render_path, stops_on_beats
 from dancegraph.rhythm.motion import motion_stops
 
@@ -137,6 +138,19 @@ def test_stops_on_beats_moves_stops_and_seams():
         near = np.abs(beats[inner][:, None] + off - stops[None, :]).min(axis=1)
         assert inner.sum() >= 8 and np.all(near <= 1.5 / motion.fps)
     assert abs(int(seam[0]) - (120 - round(0.1 * motion.fps))) <= 1
+
+
+def test_stops_on_beats_leaves_a_dance_without_stops_as_it_is():
+    """A pose held still has no stops: the dance and the frames come back unchanged."""
+    motion, bars, _ = _off_grid_take(5, 110.0, 0.0)
+    still = Motion(
+        motion.skeleton,
+        motion.fps,
+        np.repeat(motion.root_positions[:1], motion.n_frames, axis=0),
+        np.repeat(motion.rotations[:1], motion.n_frames, axis=0),
+    )
+    out, seams = stops_on_beats(still, bars, 0, np.array([30, 90]))
+    assert out is still and seams.tolist() == [30, 90]
 
 
 def test_build_anchors_motion_read_grids_only(tmp_path):
