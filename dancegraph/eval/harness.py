@@ -70,6 +70,7 @@ SCALARS: dict[str, str] = {
     "beat_accuracy": "Beat acc. (all beats)",
     "bas_bailando": "BAS (Bailando)",
     "bas_fact": "BAS (FACT)",
+    "bas_beats": "BAS (tracker's beats)",
     "phase_r": "Phase R",
     "seam_flagged_share": "Seams > p99",
     "seam_median_percentile": "Seam pct. (median)",

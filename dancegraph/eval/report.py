@@ -57,6 +57,7 @@ SYNC_TITLES: dict[str, str] = {
     "beat_accuracy": "Beat acc. (all beats, kinematic beats, ±0.1 s)",
     "bas_bailando": "BAS (Bailando)",
     "bas_fact": "BAS (FACT)",
+    "bas_beats": "BAS (Bailando's rule, the tracker's beats)",
     "phase_r": "Phase concentration R (Shiratori beats)",
 }
 

@@ -214,6 +214,7 @@ SYNC_METRICS: tuple[str, ...] = (
     "beat_accuracy",
     "bas_bailando",
     "bas_fact",
+    "bas_beats",
     "phase_r",
 )
 
@@ -221,7 +222,8 @@ SYNC_METRICS: tuple[str, ...] = (
 def sync_scores(dance: DanceBeats, grid: SyncGrid, span: tuple[float, float]) -> dict:
     """Every sync metric of ``dance`` against ``grid``, counting only the points and motion beats
     inside ``span`` (where the dance moves) and the grid's own span: ``{cm_accuracy,
-    beat_accuracy, bas_bailando, bas_fact, phase_r, phase}`` (``phase``: the motion beats' mean
+    beat_accuracy, bas_bailando, bas_fact, bas_beats, phase_r, phase}`` (``bas_beats``: Bailando's
+    rule against the tracker's beats instead of librosa's; ``phase``: the motion beats' mean
     phase on the beat grid, in beats; ``cm_accuracy`` None where the grid has no rhythm
     points there)."""
     a, b = max(span[0], grid.span[0]), min(span[1], grid.span[1])
@@ -237,6 +239,9 @@ def sync_scores(dance: DanceBeats, grid: SyncGrid, span: tuple[float, float]) ->
         ),
         "bas_fact": beat_align_score(
             within(grid.percussive_beats, a, b), within(dance.fact, a, b), "fact"
+        ),
+        "bas_beats": beat_align_score(
+            within(grid.beats, a, b), within(dance.bailando, a, b), "bailando"
         ),
         "phase_r": r,
         "phase": phase,

@@ -157,6 +157,14 @@ def test_sync_scores_of_a_dance_on_its_key_poses_beat_every_chance_row():
     assert beats.sync_scores(dance, far, span)["phase_r"] < own["phase_r"] - 0.3
     no_points = beats.SyncGrid(grid.beats, grid.percussive_beats, np.zeros(0), span)
     assert beats.sync_scores(dance, no_points, span)["cm_accuracy"] is None
+    # librosa's beats at another tempo: BAS (Bailando) no longer sees the sync, the BAS on the
+    # tracker's beats still does, beside its own half-beat row
+    elsewhere = beats.SyncGrid(grid.beats, other, grid.rhythm_points, span)
+    mine = beats.sync_scores(dance, elsewhere, span)
+    mine_half = beats.sync_scores(dance, elsewhere.half_beat(), span)
+    assert mine["bas_beats"] == pytest.approx(own["bas_beats"])
+    assert mine["bas_beats"] >= mine_half["bas_beats"] + 0.15
+    assert mine["bas_bailando"] < own["bas_bailando"] - 0.15
 
 
 def test_librosa_beats_find_a_click_track():
