@@ -13,9 +13,10 @@ files of ``DIR/audio`` (or ``DIR``), the first K of each genre (the name up to i
 or ``_``; GTZAN's 15-20 s clips in ``bench_real_music``'s layout: many short dances, so the
 mean over songs is steadier than the four CC songs alone). Per set it prints
 the sync table (value, half-beat and other-song chance rows) and, per song, ``ours`` against
-issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15 (beside
-the song's ceiling, ``bas_ceiling``), CM beat accuracy >= 0.85 and >= 1.5 x its half-beat chance. ``metrics.json`` and ``report.html``
-of each run go to ``--out`` (default: a temporary folder, removed).
+issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15
+(beside the song's ceiling, ``bas_ceiling``, and the gain of BAS on the tracker's beats), CM beat
+accuracy >= 0.85 and >= 1.5 x its half-beat chance. ``metrics.json`` and ``report.html`` of each
+run go to ``--out`` (default: a temporary folder, removed).
 ``DANCEGRAPH_SHARED`` points at the shared datasets (default ../shared).
 """
 

@@ -113,9 +113,15 @@ def song_phase(bar_beats: np.ndarray) -> Warp:
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     if len(bb) == 0:
         raise ValueError("song_phase needs at least one bar")
-    times = np.concatenate([bb[:, :4].reshape(-1), bb[-1:, 4]])
+    times = _phase_beats(bb)
     phase, times = _turns(np.arange(times.size, dtype=float), times)
     return Warp(times, phase)
+
+
+def _phase_beats(bar_beats: np.ndarray) -> np.ndarray:
+    """The beats at phases 0, 1, 2, ... of ``bar_beats (B, 5)``: every bar's beats 0-3 and the
+    last bar's closing downbeat, ``(4B + 1,)``."""
+    return np.concatenate([bar_beats[:, :4].reshape(-1), bar_beats[-1:, 4]])
 
 
 def node_warp(beats: np.ndarray) -> Warp:
@@ -210,7 +216,7 @@ def beat_map(bar_beats: np.ndarray, source_beats: np.ndarray, t: np.ndarray) -> 
     src = np.asarray(source_beats, dtype=float).reshape(-1, 5)
     if src.shape != bb.shape:
         raise ValueError(f"beat_map needs the same bars on both sides: {bb.shape}, {src.shape}")
-    values = np.concatenate([src[:, :4].reshape(-1), src[-1:, 4]])
+    values = _phase_beats(src)
     to_source = Warp(*_turns(np.arange(values.size, dtype=float), values))
     return to_source(song_phase(bb)(np.asarray(t, dtype=float)))
 

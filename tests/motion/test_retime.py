@@ -115,9 +115,8 @@ def test_song_phase_counts_beats_across_bars():
 def test_beat_map_lands_each_beat_on_its_source_beat():
     """``beat_map``: song beat k maps onto source beat k exactly, monotone everywhere, the
     identity where both sides are the same beats (within 1 ms: the two maps' turns are not
-    exact inverses), straight (one rate) on the middle of each beat
-    interval (the turns sit within ``TURN_BEATS`` of the beats), and a shape mismatch is an
-    error."""
+    exact inverses), straight (one rate) on the middle of each beat interval (the turns sit
+    within ``TURN_BEATS`` of the beats), and a shape mismatch is an error."""
     from dancegraph.motion.retime import TURN_BEATS, beat_map
 
     song = np.array([[0.5, 1.0, 1.6, 2.0, 2.5], [2.5, 3.0, 3.4, 4.0, 4.5]])
