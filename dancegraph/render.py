@@ -3,7 +3,9 @@
 For every alternative of a search result, bar ``b``'s node is laid on the music bar through the
 beat-anchored time-warp (every beat of the node on the song's beat of the same number), the nodes
 hand over to each other where they match best within a beat of each bar line, with root alignment
-and inertialized offsets (``motion.stitch``; docs/rendering.md), the dance is placed on the stage
+and inertialized offsets (``motion.stitch``; docs/rendering.md), the stitched dance is re-timed
+on the song's beats (``beat_timing``: its stops onto the beats, and slowing into every beat), it
+is placed on the stage
 where the search planned the path, and the feet are cleaned (``clean_foot_skate``). Frame 0 of
 every file is t = 0 of the song: before the first bar the first pose is held, after the last bar
 the last pose, so an artist can drop the audio and the animation on one timeline. Bar ``b``
@@ -36,6 +38,7 @@ from dancegraph.errors import DanceGraphError
 from dancegraph.graph.artifact import KINDS, MotionGraph
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import write_bvh
+from dancegraph.motion.retime import BEAT_ACCENT
 from dancegraph.motion.skeleton import Motion
 from dancegraph.spec import Spec
 
@@ -143,6 +146,7 @@ def render_path(
     placements: np.ndarray | None = None,
     foot_cleanup: bool = True,
     land_stops: bool = True,
+    beat_accent: float = BEAT_ACCENT,
 ) -> tuple[Motion, dict]:
     """The dance of one path: ``nodes[b]`` (node ids) danced on music bar b, whose beats are
     ``bar_beats[b]`` (``(B, 5)`` s: 4 beats and the next downbeat, ``analysis.bar_beats``).
@@ -157,8 +161,9 @@ def render_path(
     (``Alternative.placements``; default: the origin facing +Z, chained by the stitch). The
     stitched dance is moved there and the small drift between stitching and the plan is spread
     linearly over each bar, so stage bounds and waypoints the search honoured hold on the file.
-    ``land_stops``: the stitched dance's stops are moved onto the song's beats
-    (``stops_on_beats``) before it is placed and its feet cleaned.
+    ``land_stops``, ``beat_accent``: the stitched dance's stops are moved onto the song's beats,
+    and it slows into every beat by ``beat_accent`` ([0, 1)), before it is placed and its feet
+    cleaned (``beat_timing``).
     """
     from dancegraph.motion.contacts import clean_foot_skate
     from dancegraph.motion.stitch import CUT_BEATS, stitch
@@ -194,8 +199,9 @@ def render_path(
         )
     seam = ~cuts["continuous"]
     seams = cuts["cuts"][seam]
-    if land_stops:
-        dance, seams = stops_on_beats(dance, bar_beats, int(frames[0, 0]), seams)
+    dance, seams = beat_timing(
+        dance, bar_beats, int(frames[0, 0]), seams, land_stops=land_stops, accent=beat_accent
+    )
     report: dict = {
         "seams": [int(s) for s in seams],
         "seam_bars": [int(b) + 1 for b in np.flatnonzero(seam)],
@@ -233,53 +239,95 @@ def render_path(
 #: beats: how far from a song beat a stop of the stitched dance may be moved onto it (the
 #: build's ``BuildParams.accent_tolerance``: a stop nearer the half beat is left where it is)
 STOP_TOLERANCE = 0.45
-#: bound on how much ``stops_on_beats`` may speed up or slow down a beat interval (the build's
+#: bound on how much landing the stops may speed up or slow down a beat interval (the build's
 #: ``accent_max_speed``: the stop moves back until the interval is at it)
 STOP_MAX_SPEED = 1.5
-#: frames per second (at most) the stitched dance's stops are read at: every k-th frame of a
-#: faster dance, for half the forward kinematics at 60 fps; the stops' sub-frame refinement
-#: keeps them within a few milliseconds, far inside ``STOP_TOLERANCE``
+#: frames per second (at most) the stitched dance's stops and speed are read at: every k-th
+#: frame of a faster dance, for half the forward kinematics at 60 fps; the stops' sub-frame
+#: refinement keeps them within a few milliseconds, far inside ``STOP_TOLERANCE``
 STOP_FPS = 30.0
 
 
-def stops_on_beats(
-    dance: Motion, bar_beats: np.ndarray, start_frame: int, frames: np.ndarray
+def beat_timing(
+    dance: Motion,
+    bar_beats: np.ndarray,
+    start_frame: int,
+    frames: np.ndarray,
+    *,
+    land_stops: bool = True,
+    accent: float = BEAT_ACCENT,
 ) -> tuple[Motion, np.ndarray]:
-    """The stitched ``dance`` (song frames from ``start_frame`` on, at ``dance.fps``) re-timed
-    so its stops (``rhythm.motion.motion_stops``) land on the song's beats ``bar_beats (B, 5)``
-    s: the song's beats moved onto the stops near them (``retime.accent_anchors``, within
-    ``STOP_TOLERANCE`` of a beat, no beat interval sped up or slowed down beyond
-    ``STOP_MAX_SPEED``) and the dance sampled through the map from song time to those
-    (``retime.beat_map``). Returns the warped dance (same frame count and rate) and ``frames
-    (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall. Why: the
-    nodes' beats are laid on the song's, but stops made by the hand-overs, and the stops of
-    nodes whose grid was read from motion, sit at any phase of the beat; the viewer sees the
-    stitched dance. A dance with no stop near a beat, or on a skeleton without the canonical
-    joints, is returned as it is."""
-    from dancegraph.motion.retime import accent_anchors, beat_map, sample
-    from dancegraph.rhythm.motion import motion_stops
+    """The stitched ``dance`` (song frames from ``start_frame`` on, at ``dance.fps``) re-timed on
+    the song's beats ``bar_beats (B, 5)`` s, in one resampling through two steps, each a map
+    from song time to the time of the dance before it:
+
+    1. stops on the beats (``land_stops``): the dance's stops (``rhythm.motion.motion_stops``)
+       within ``STOP_TOLERANCE`` beat of a song beat land on it (``retime.accent_anchors``: no
+       beat interval sped up or slowed down beyond ``STOP_MAX_SPEED``; ``retime.beat_map``);
+    2. the beat accent (``accent`` > 0): the landed dance slows into every beat and speeds up
+       between (``retime.accent_map``), by ``accent`` less the accent it already has
+       (``retime.accent_depth`` of its ``stop_curve``; a dance that already slows that much on
+       its beats is left as it is), fading out within ``retime.ACCENT_FADE_BEATS`` of each of
+       ``frames`` (the seams keep their pace); beats and bar lines stay where they are.
+
+    ``accent`` in [0, 0.8]. Returns the re-timed dance (same frame count and rate) and ``frames
+    (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall. Why: the nodes'
+    beats are laid on the song's, but stops made by the hand-overs, and the stops of nodes whose
+    grid was read from motion, sit at any phase of the beat, and a dance of even pace has no
+    moment the eye reads as the beat; the viewer sees the stitched dance. A dance on a skeleton
+    without the canonical joints, or with nothing to move (no stop near a beat, no pace to
+    accent), is returned as it is."""
+    from dancegraph.motion.retime import (
+        accent_anchors,
+        accent_depth,
+        accent_map,
+        beat_map,
+        sample,
+        song_phase,
+    )
+    from dancegraph.rhythm.motion import motion_rhythm
 
     fps = float(dance.fps)
     frames = np.asarray(frames)
+    if not land_stops and accent <= 0.0:
+        return dance, frames
     step = max(1, int(fps // STOP_FPS))
     coarse = Motion(
         dance.skeleton, fps / step, dance.root_positions[::step], dance.rotations[::step]
     )
     try:
-        stops = motion_stops(coarse) + start_frame / fps
+        curve, stops = motion_rhythm(coarse)
     except DanceGraphError as exc:
         if exc.code != "skeleton_unmapped":
             raise
         return dance, frames
-    moved = accent_anchors(bar_beats, stops, STOP_TOLERANCE, STOP_MAX_SPEED)
-    if np.array_equal(moved, bar_beats):
+    moved = bar_beats
+    if land_stops:
+        moved = accent_anchors(bar_beats, stops + start_frame / fps, STOP_TOLERANCE, STOP_MAX_SPEED)
+    landed = not np.array_equal(moved, bar_beats)
+
+    def to_dance(t: np.ndarray) -> np.ndarray:  # song time -> time in the stitched dance
+        return beat_map(bar_beats, moved, t) if landed else t
+
+    depth = 0.0
+    if accent > 0.0 and curve.any():
+        t = (start_frame + step * np.arange(curve.size)) / fps
+        inside = (t >= bar_beats[0, 0]) & (t <= bar_beats[-1, 4])
+        source = to_dance(t)
+        speed = np.interp(source, t, curve) * np.gradient(source, t)  # the landed dance's
+        had = accent_depth(speed[inside], song_phase(bar_beats)(t[inside]))
+        depth = float(np.clip(accent - had, 0.0, accent))
+    if not landed and depth == 0.0:
         return dance, frames
     song = (start_frame + np.arange(dance.n_frames)) / fps
-    source = beat_map(bar_beats, moved, song) * fps - start_frame
+    if depth > 0.0:  # the frames given (the seams) keep the dance's pace, where they now fall
+        landed_at = np.interp(frames / fps, to_dance(song), song)
+        song = accent_map(bar_beats, song, depth, fade_at=landed_at)
+    source = to_dance(song) * fps - start_frame
     warped = sample(dance, source)
     warped.fps = fps
-    landed = np.interp(frames - start_frame, source, np.arange(dance.n_frames)) + start_frame
-    return warped, np.round(landed).astype(np.int64)
+    now = np.interp(frames - start_frame, source, np.arange(dance.n_frames)) + start_frame
+    return warped, np.round(now).astype(np.int64)
 
 
 def stage_violation(root_xz: np.ndarray, stage) -> float:
@@ -351,6 +399,7 @@ def render(
             placements=alt.get("placements"),
             foot_cleanup=spec.output.foot_cleanup,
             land_stops=spec.output.stops_on_beats,
+            beat_accent=spec.output.beat_accent,
         )
         outside = stage_violation(dance.root_positions[:, [0, 2]], spec.stage)
         report["stage"]["outside_m"] = outside

@@ -29,6 +29,7 @@ from pydantic import (
 )
 
 from dancegraph.errors import SpecError, field_errors
+from dancegraph.motion.retime import BEAT_ACCENT
 
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
@@ -180,6 +181,15 @@ class Output(_Strict):
         description="re-time the stitched dance so its stops (the moments the dancer halts) "
         "that lie within 0.45 beat of a song beat land on it, no beat interval sped up or "
         "slowed down more than 1.5x (off: only the nodes' own beats are laid on the song's)",
+    )
+    beat_accent: float = Field(
+        BEAT_ACCENT,
+        ge=0,
+        le=0.8,
+        description="how much the dance slows into every beat and speeds up between, as a share "
+        "of its pace (0.4: 0.6x on the beat, 1.4x half-way; counting what the dance already has, "
+        "so a dance that already slows that much is left as it is; the seams keep their own "
+        "pace); beats and bar lines do not move; 0: off",
     )
     rig: str | None = Field(
         None,

@@ -432,6 +432,7 @@ def _render(lib: Library, song: Song, nodes: np.ndarray, placements, spec: Spec)
         placements=placements,
         foot_cleanup=spec.output.foot_cleanup,
         land_stops=spec.output.stops_on_beats,
+        beat_accent=spec.output.beat_accent,
     )
 
 

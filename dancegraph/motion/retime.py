@@ -8,7 +8,8 @@ song's beat of the same number, the dance speeds up and slows down with uneven b
 from one beat's rate to the next on the beat, ``TURN_BEATS``), and the warp stays defined past
 the bar's ends, where the seam's cut may fall (docs/rendering.md). The stitched dance is
 re-timed by the same construction (``beat_map``: the song's beats onto its stops near them,
-``accent_anchors``), as the build moves a take's grid beats onto its stops.
+``accent_anchors``), as the build moves a take's grid beats onto its stops, and made to slow into
+every beat (``accent_map``, ``accent_phase``, ``accent_depth``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,15 @@ BEAT0 = 2
 #: a change of rate between two beats happens on the beat, where an accent-anchored take stops
 #: (docs/rendering.md, "Accent anchors"), and not mid-beat, where it would make a new stop.
 TURN_BEATS = 0.2
+#: How much a rendered dance slows into every beat by default (``accent_phase``'s depth that the
+#: renderer reaches, counting what the dance already has: ``accent_depth``): 0.4 slows a dance
+#: of even pace to 0.6 of it on the beat and speeds it to 1.4 half-way (docs/rendering.md,
+#: "Beat accent", for what it does to sync, speed and FID on real songs).
+BEAT_ACCENT = 0.4
+#: Beats either side of a moment that keeps the dance's own pace (a seam: a hand-over already
+#: carries the stitch's offsets, and the accent's speed-up would add to them) over which the
+#: accent fades out; one beat keeps ``accent_phase`` monotone up to depth 0.8.
+ACCENT_FADE_BEATS = 1.0
 
 
 class Warp:
@@ -219,6 +229,58 @@ def beat_map(bar_beats: np.ndarray, source_beats: np.ndarray, t: np.ndarray) -> 
     values = _phase_beats(src)
     to_source = Warp(*_turns(np.arange(values.size, dtype=float), values))
     return to_source(song_phase(bb)(np.asarray(t, dtype=float)))
+
+
+def accent_phase(phase: np.ndarray, depth: float | np.ndarray) -> np.ndarray:
+    """Beat phase ``phase (N,)`` (beats) → the phase of the un-accented dance danced there:
+    ``φ − depth·sin(2πφ)/(2π)``. The dance then runs at ``1 − depth·cos(2πφ)`` times its pace:
+    slowest (``1 − depth``) on every beat, fastest (``1 + depth``) half-way between, every beat
+    (integer phase) where it was, so a stop on a beat stays there and bar lines do not move.
+    ``depth``: a number in [0, 1) (monotone, C∞), or one per phase ``(N,)`` varying slowly (a
+    fade over ``ACCENT_FADE_BEATS`` keeps the map monotone up to depth 0.8); raises
+    ``ValueError`` outside [0, 1). Why: a dancer marks the beat by slowing into it; the stops
+    the dance has near its beats become stops on them, which the eye and every motion-beat
+    detector read."""
+    d = np.asarray(depth, dtype=float)
+    if d.size and (d.min() < 0.0 or d.max() >= 1.0):
+        raise ValueError(f"accent depth must be in [0, 1), got {d.min()} .. {d.max()}")
+    p = np.asarray(phase, dtype=float)
+    return p - d / (2.0 * np.pi) * np.sin(2.0 * np.pi * p)
+
+
+def accent_depth(speed: np.ndarray, phase: np.ndarray) -> float:
+    """How much a dance already slows on its beats: ``−2 Σ s·cos(2πφ) / Σ s`` of its speed curve
+    ``speed (N,)`` (any positive speed, e.g. ``rhythm.motion.stop_curve``) at beat phases ``phase
+    (N,)``, sampled evenly in time: 0 for no relation to the beat, ``a`` for a speed proportional
+    to ``1 − a·cos(2πφ)`` (what ``accent_phase`` with depth ``a`` makes of an even pace),
+    negative where the dance is slowest between the beats; 0 for an empty or still curve."""
+    s = np.asarray(speed, dtype=float).reshape(-1)
+    p = np.asarray(phase, dtype=float).reshape(-1)
+    total = float(s.sum())
+    if s.size == 0 or total <= 0.0:
+        return 0.0
+    return float(-2.0 * np.sum(s * np.cos(2.0 * np.pi * p)) / total)
+
+
+def accent_map(
+    bar_beats: np.ndarray, t: np.ndarray, depth: float, fade_at: np.ndarray | None = None
+) -> np.ndarray:
+    """Song times ``t (N,)`` s → the times of the un-accented dance danced there (``accent_phase``
+    on the song's beat phase, ``song_phase`` of ``bar_beats (B, 5)`` s, and back): the song's
+    beats map onto themselves, and between them the dance runs at ``1 − depth·cos(2πφ)`` times
+    its pace. ``depth`` in [0, 0.8]. ``fade_at (K,)`` s: moments that keep the dance's own pace
+    (e.g. its seams): the depth fades to 0 at each of them over ``ACCENT_FADE_BEATS`` either
+    side (a raised cosine in beats)."""
+    phase = song_phase(bar_beats)
+    p = phase(np.asarray(t, dtype=float))
+    local: float | np.ndarray = depth
+    fade = np.zeros(0) if fade_at is None else phase(np.asarray(fade_at, dtype=float).ravel())
+    if fade.size and depth > 0.0:
+        nearest = np.abs(p[:, None] - np.sort(fade)[None, :]).min(axis=1)
+        near = nearest < ACCENT_FADE_BEATS
+        calm = np.where(near, 0.5 * (1.0 + np.cos(np.pi * nearest / ACCENT_FADE_BEATS)), 0.0)
+        local = depth * (1.0 - calm)
+    return Warp(phase.y, phase.x)(accent_phase(p, local))
 
 
 def sample(motion: Motion, frames: np.ndarray) -> Motion:

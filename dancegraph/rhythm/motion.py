@@ -27,6 +27,8 @@ STOP_RATIO = 1.0
 #: ... and two stops count separately only when the body moves in between: the curve rises
 #: above this fraction of the running mean (otherwise the lower of the two is kept).
 MOVE_RATIO = 0.6
+#: m/s: a body part of the stop curve moving slower than this on average is held still.
+STILL_SPEED = 1e-4
 
 # SMPL_JOINTS indices (metrics.kinetic) of the body parts Shiratori's motion rhythm watches
 _PELVIS = 0
@@ -47,7 +49,9 @@ def stop_curve(smpl: np.ndarray, fps: float) -> np.ndarray:
     """``(F,)`` Shiratori's motion rhythm curve: the speeds (m/s) of the hands relative to the
     pelvis (Shiratori measures them in the body's frame), of the feet and of the centre of mass
     (mean of the 24 joints), each divided by its own mean over the dance so the three weigh
-    alike, summed, Gaussian-smoothed over ``STOP_SMOOTH_S``. ``smpl (F, 24, 3)`` at ``fps``."""
+    alike (a part whose mean speed is under ``STILL_SPEED`` is left out: it does not move, and
+    its rounding noise must not weigh as a move), summed, Gaussian-smoothed over
+    ``STOP_SMOOTH_S``; all zeros for a motion that does not move. ``smpl (F, 24, 3)`` at ``fps``."""
     smpl = np.asarray(smpl, dtype=float)
     if smpl.shape[0] < 2:
         return np.zeros(smpl.shape[0])
@@ -60,7 +64,8 @@ def stop_curve(smpl: np.ndarray, fps: float) -> np.ndarray:
     curve = np.zeros(smpl.shape[0])
     for v in parts:
         speed = np.linalg.norm(v, axis=-1).sum(axis=1) * fps
-        curve += speed / (speed.mean() + 1e-9)
+        if speed.mean() > STILL_SPEED:
+            curve += speed / speed.mean()
     return gaussian_filter1d(curve, STOP_SMOOTH_S * fps, mode="nearest")
 
 
@@ -95,5 +100,13 @@ def motion_stops(motion: Motion) -> np.ndarray:
     """``(K,)`` s: the ``shiratori_beats`` of a motion, read on its SMPL-like joints
     (``metrics.kinetic.smpl_positions``) at its own frame rate; raises ``skeleton_unmapped``
     where a canonical joint is missing."""
+    return motion_rhythm(motion)[1]
+
+
+def motion_rhythm(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+    """A motion's ``stop_curve`` ``(F,)`` and its stops ``(K,)`` s (``shiratori_beats``), from one
+    forward kinematics at its own frame rate; raises ``skeleton_unmapped`` where a canonical
+    joint is missing."""
     positions, world = forward_kinematics(motion)
-    return shiratori_beats(smpl_positions(motion.skeleton, positions, world), motion.fps)
+    smpl = smpl_positions(motion.skeleton, positions, world)
+    return stop_curve(smpl, motion.fps), shiratori_beats(smpl, motion.fps)

@@ -18,7 +18,7 @@ from dancegraph.motion.features import kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import Warp, accent_anchors, sample
 from dancegraph.motion.skeleton import Motion
-from dancegraph.render import render_path, stops_on_beats
+from dancegraph.render import beat_timing, render_path
 from dancegraph.rhythm.motion import motion_stops
 
 ON_EVERY_BEAT = "01010101"  # slots 0, 2, 4, 6: a pause on each beat
@@ -104,7 +104,8 @@ def test_rendered_pauses_land_on_the_song_beats():
     """Every bar of the takes danced in turn on a song at another tempo with uneven beats: the
     dance's kinematic beats (minima of mean joint speed) gather on the song's beats (R >= 0.8)
     with the build's anchors (on the takes' Shiratori stops) alone, with the renderer's
-    ``stops_on_beats`` alone, and with both; with neither they do not."""
+    stops on the beats (``beat_timing``'s first step, its beat accent off) alone, and with
+    both; with neither they do not."""
     takes = [_off_grid_take(seed, tempo, 0.2) for seed, tempo in ((2, 104.0), (3, 118.0))]
     rng = np.random.default_rng(7)
     song_beats = np.cumsum(np.r_[1.0, 0.5 + rng.uniform(-0.03, 0.03, 48)])
@@ -115,7 +116,9 @@ def test_rendered_pauses_land_on_the_song_beats():
         g = _graph(takes, anchors)
         nodes = [f"t{b // 6 % 2}:{b % 6}" for b in range(12)]
         for land in (False, True):
-            dance, _ = render_path(g, nodes, bar_beats, fps, foot_cleanup=False, land_stops=land)
+            dance, _ = render_path(
+                g, nodes, bar_beats, fps, foot_cleanup=False, land_stops=land, beat_accent=0.0
+            )
             r[anchors, land] = phase_concentration(song_beats[:49], _pauses(dance))[0]
     assert r[True, False] >= 0.8
     assert r[False, True] >= 0.8
@@ -124,13 +127,13 @@ def test_rendered_pauses_land_on_the_song_beats():
 
 
 def test_stops_on_beats_moves_stops_and_seams():
-    """``render.stops_on_beats`` on a dance whose pauses sit 0.1 s (a fifth of a beat) after
+    """``render.beat_timing``'s stops on the beats (its accent off) on a dance whose pauses sit 0.1 s (a fifth of a beat) after
     the song's beats: the pauses move onto the beats (within 1.5 frames), the frame count
     stays, and a frame given (a seam) moves with the motion, 0.1 s earlier."""
     motion, bars, _ = _off_grid_take(4, 120.0, 0.0)
     song_bars = bars - 0.1
     before = motion_stops(motion)
-    moved, seam = stops_on_beats(motion, song_bars, 0, np.array([120]))
+    moved, seam = beat_timing(motion, song_bars, 0, np.array([120]), accent=0.0)
     assert moved.n_frames == motion.n_frames
     beats = np.unique(song_bars)
     inner = (beats > beats[0] + 0.3) & (beats < beats[-1] - 0.3)
@@ -141,7 +144,8 @@ def test_stops_on_beats_moves_stops_and_seams():
 
 
 def test_stops_on_beats_leaves_a_dance_without_stops_as_it_is():
-    """A pose held still has no stops: the dance and the frames come back unchanged."""
+    """A pose held still has no stops, and no pace to accent: the dance and the frames come
+    back unchanged."""
     motion, bars, _ = _off_grid_take(5, 110.0, 0.0)
     still = Motion(
         motion.skeleton,
@@ -149,7 +153,7 @@ def test_stops_on_beats_leaves_a_dance_without_stops_as_it_is():
         np.repeat(motion.root_positions[:1], motion.n_frames, axis=0),
         np.repeat(motion.rotations[:1], motion.n_frames, axis=0),
     )
-    out, seams = stops_on_beats(still, bars, 0, np.array([30, 90]))
+    out, seams = beat_timing(still, bars, 0, np.array([30, 90]))
     assert out is still and seams.tolist() == [30, 90]
 
 
@@ -216,3 +220,77 @@ def test_node_anchoring_counts_stops_on_and_between_the_beats():
     steady, grid, _ = _off_grid_take(5, 110.0, 0.0)
     assert np.median(anchoring(steady, grid, anchors=False)) >= 0.45
     assert np.median(anchoring(steady, grid[:-1] + 0.5 * 60.0 / 110.0, anchors=False)) <= -1.2
+
+
+def _grid_bars(start_s: float, bpm: float, end_s: float) -> np.ndarray:
+    """``(B, 5)`` s: whole 4-beat bars of a steady grid from ``start_s`` to at most ``end_s``."""
+    beats = start_s + 60.0 / bpm * np.arange(int((end_s - start_s) * bpm / 60.0) + 1)
+    n = (beats.size - 1) // 4
+    return np.stack([beats[4 * b : 4 * b + 5] for b in range(n)])
+
+
+def test_beat_accent_puts_stops_on_the_beats_of_an_even_dance():
+    """A body gliding at an even pace (its stops are rounding noise); ``beat_timing``'s beat
+    accent (its stops step off) makes one on every inner beat (within 1.5 frames) and none
+    elsewhere, keeps the frame count; a seam frame keeps the glide's own pace within a tenth
+    of a beat of it, and the beats more than a beat (``ACCENT_FADE_BEATS``) from it keep their
+    stops; accent 0 leaves the dance as it is."""
+    motion, _, _ = _off_grid_take(6, 120.0, 0.0)
+    n, velocity = 600, np.array([0.8, 0.0, 0.3])
+    glide = Motion(
+        motion.skeleton,
+        motion.fps,
+        motion.root_positions[:1] + np.outer(np.arange(n) / motion.fps, velocity),
+        np.repeat(motion.rotations[:1], n, axis=0),
+    )
+    bars = _grid_bars(0.3, 126.0, n / motion.fps - 0.3)
+    beats = np.unique(bars)
+    beat = beats[1] - beats[0]
+
+    def stops_within_bars(m: Motion) -> np.ndarray:
+        stops = motion_stops(m)
+        return stops[(stops > beats[0] - 0.1) & (stops < beats[-1] + 0.1)]
+
+    out, _ = beat_timing(glide, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False, accent=0.4)
+    assert out.n_frames == n
+    stops = stops_within_bars(out)
+    assert np.abs(stops[:, None] - beats[None, 1:-1]).min(axis=0).max() <= 1.5 / motion.fps
+    assert np.abs(stops[:, None] - beats[None, :]).min(axis=1).max() <= 1.5 / motion.fps
+
+    out, seam = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.4)
+    at = int(seam[0])
+    assert abs(at - 300) <= 1  # the glide's seam frame, where its motion now falls
+    speed = np.linalg.norm(np.diff(out.root_positions, axis=0), axis=1) * motion.fps
+    near = np.abs(np.arange(n - 1) + 0.5 - at) <= 0.1 * beat * motion.fps
+    np.testing.assert_allclose(speed[near], np.linalg.norm(velocity), rtol=0.03)
+    far = beats[1:-1][np.abs(beats[1:-1] - at / motion.fps) > beat]
+    stops = stops_within_bars(out)
+    assert np.abs(stops[:, None] - far[None, :]).min(axis=0).max() <= 1.5 / motion.fps
+
+    same, frames = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.0)
+    assert same is glide and frames.tolist() == [300]
+
+
+def test_beat_accent_leaves_a_dance_that_already_slows_on_its_beats():
+    """A take that pauses on every beat of its grid already slows on the beat more than the
+    accent asks: ``beat_timing`` returns it as it is."""
+    motion, bars, _ = _off_grid_take(4, 120.0, 0.0)
+    out, _ = beat_timing(motion, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False)
+    assert out is motion
+
+
+@pytest.mark.parametrize("bpm, start_s", [(95.0, 0.3), (120.0, 0.1), (150.0, 0.0), (171.0, 0.2)])
+def test_beat_accent_gathers_a_real_takes_stops_on_any_grid(salsa_dir, bpm, start_s):
+    """Real salsa (20 s of take 60_07) on a steady grid unrelated to its own beat: its Shiratori
+    stops fall at any phase of the grid's beats (R < 0.3); with the default beat accent alone
+    (stops step off) they gather on them (R >= 0.6)."""
+    from dancegraph.motion.bvh import read_bvh
+
+    take = read_bvh(salsa_dir / "60_07_scaled.bvh", fps=60).slice(600, 1800)
+    bars = _grid_bars(start_s, bpm, take.n_frames / take.fps)
+    beats = np.unique(bars)
+    before = phase_concentration(beats, motion_stops(take))[0]
+    out, _ = beat_timing(take, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False)
+    after = phase_concentration(beats, motion_stops(out))[0]
+    assert before < 0.3
+    assert after >= 0.6

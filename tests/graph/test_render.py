@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dancegraph.errors import DanceGraphError
+from dancegraph.errors import DanceGraphError, SpecError
 from dancegraph.graph.search import SearchResult, search
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import read_bvh
@@ -19,7 +19,7 @@ from dancegraph.motion.fbx import fbx_available
 from dancegraph.music.analysis import analyze
 from dancegraph.music.generator import generate_song
 from dancegraph.render import bar_frames, render
-from dancegraph.spec import Spec
+from dancegraph.spec import Spec, parse_spec
 
 FPS = 30
 
@@ -176,6 +176,29 @@ def test_bad_paths_are_clear_errors(demo_graph, analysis, rendered, tmp_path: Pa
     with pytest.raises(DanceGraphError) as err:
         render(demo_graph, analysis, SearchResult([], {}), spec, tmp_path)
     assert err.value.code == "render_empty"
+
+
+def test_beat_accent_reaches_the_renderer(demo_graph, analysis, tmp_path, monkeypatch):
+    """``output.beat_accent`` and ``output.stops_on_beats`` reach the re-timing of every
+    alternative (default 0.4 and on; the step itself: tests/graph/test_anchors.py), and the
+    spec refuses an accent that would stop the dance (0.8 at most)."""
+    import dancegraph.render as render_module
+
+    seen = []
+    real = render_module.beat_timing
+
+    def spy(*args, **kwargs):
+        seen.append((kwargs["land_stops"], kwargs["accent"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(render_module, "beat_timing", spy)
+    spec = _spec(alternatives=2, output={"formats": ["bvh"], "fps": FPS, "beat_accent": 0.25})
+    render(demo_graph, analysis, search(demo_graph, analysis, spec), spec, tmp_path)
+    assert seen == [(True, 0.25), (True, 0.25)]
+    assert Spec().output.beat_accent == 0.4
+    with pytest.raises(SpecError) as err:
+        parse_spec({"dataset": "demo", "output": {"beat_accent": 0.9}})
+    assert "beat_accent" in str(err.value.to_dict())
 
 
 def test_stops_on_beats_switch_reaches_the_files(demo_graph, analysis, rendered, tmp_path):

@@ -135,6 +135,88 @@ def test_beat_map_lands_each_beat_on_its_source_beat():
         beat_map(song, moved[:1], t)
 
 
+def test_accent_phase_slows_into_every_beat_and_keeps_it():
+    """``accent_phase``: every integer phase (beat) maps onto itself, the map increases, its
+    rate is ``1 - depth`` on the beats and ``1 + depth`` half-way, depth 0 is the identity, and
+    a depth of 1 or more (a dance standing still or running back) is refused."""
+    from dancegraph.motion.retime import accent_phase
+
+    beats = np.arange(-2.0, 9.0)
+    np.testing.assert_allclose(accent_phase(beats, 0.4), beats, atol=1e-12)
+    p = np.linspace(-2.0, 8.0, 10001)
+    assert (np.diff(accent_phase(p, 0.8)) > 0).all()
+    np.testing.assert_allclose(accent_phase(p, 0.0), p)
+    h = 1e-6
+    for at, rate in ((3.0, 0.6), (3.5, 1.4)):
+        got = (
+            (accent_phase(np.array([at + h]), 0.4) - accent_phase(np.array([at - h]), 0.4)) / 2 / h
+        )
+        np.testing.assert_allclose(got, rate, rtol=1e-6)
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError):
+            accent_phase(p, bad)
+
+
+def test_accent_depth_reads_how_much_a_speed_slows_on_the_beat():
+    """``accent_depth``: a speed ``1 - a cos(2πφ)`` reads ``a``; an even speed 0; a speed slowest
+    between the beats reads negative; an empty or still curve 0."""
+    from dancegraph.motion.retime import accent_depth
+
+    phase = np.linspace(0.0, 16.0, 1600, endpoint=False)
+    for a in (0.0, 0.25, 0.6):
+        assert accent_depth(1.0 - a * np.cos(2 * np.pi * phase), phase) == pytest.approx(
+            a, abs=1e-9
+        )
+    assert accent_depth(1.0 + 0.3 * np.cos(2 * np.pi * phase), phase) == pytest.approx(-0.3)
+    assert accent_depth(np.zeros(0), np.zeros(0)) == 0.0
+    assert accent_depth(np.zeros(10), np.arange(10.0)) == 0.0
+
+
+def test_accent_map_keeps_the_song_beats_and_makes_the_dance_slow_on_them():
+    """``accent_map`` on uneven song beats: each beat maps onto itself (within 1 ms: the song
+    phase and its inverse are PCHIPs through the same anchors), the map increases, and an even
+    pace read through it is slowest on the beats (``1 - depth``) and fastest half-way."""
+    from dancegraph.motion.retime import accent_map
+
+    song = np.array([[0.5, 1.0, 1.6, 2.0, 2.5], [2.5, 3.0, 3.4, 4.0, 4.5]])
+    beats = np.r_[song[:, :4].ravel(), song[-1, 4]]
+    np.testing.assert_allclose(accent_map(song, beats, 0.4), beats, atol=1e-3)
+    t = np.linspace(0.0, 5.0, 50001)
+    mapped = accent_map(song, t, 0.4)
+    rate = np.gradient(mapped, t)
+    assert (np.diff(mapped) > 0).all()
+    on_beat = np.abs(t[:, None] - beats[1:-1][None, :]).min(axis=1) < 0.005
+    half_way = np.abs(t[:, None] - ((beats[1:] + beats[:-1]) / 2)[None, :]).min(axis=1) < 0.005
+    np.testing.assert_allclose(rate[on_beat], 0.6, atol=0.02)
+    np.testing.assert_allclose(rate[half_way], 1.4, atol=0.02)
+
+
+def test_accent_map_fades_out_at_the_moments_that_keep_their_pace():
+    """``accent_map`` with ``fade_at``: the pace there is the dance's own (rate 1), the beats
+    more than ``ACCENT_FADE_BEATS`` away keep the full accent (rate ``1 - depth``), every beat
+    still maps onto itself, and the map increases at the largest depth (0.8) wherever the
+    fades fall."""
+    from dancegraph.motion.retime import ACCENT_FADE_BEATS, accent_map
+
+    beats = 0.5 * np.arange(33)  # 120 BPM, 8 bars
+    song = np.stack([beats[4 * b : 4 * b + 5] for b in range(8)])
+    t = np.linspace(0.0, 16.0, 64001)
+    seam = 5.37
+    mapped = accent_map(song, t, 0.4, fade_at=np.array([seam]))
+    rate = np.gradient(mapped, t)
+    np.testing.assert_allclose(rate[np.abs(t - seam) < 1e-3], 1.0, atol=0.01)
+    far = beats[np.abs(beats - seam) > ACCENT_FADE_BEATS * 0.5 + 0.01][1:-1]
+    on_far = np.abs(t[:, None] - far[None, :]).min(axis=1) < 1e-3
+    np.testing.assert_allclose(rate[on_far], 0.6, atol=0.01)
+    np.testing.assert_allclose(
+        accent_map(song, beats, 0.4, fade_at=np.array([seam])), beats, atol=1e-9
+    )
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        fades = rng.uniform(0.0, 16.0, rng.integers(1, 6))
+        assert (np.diff(accent_map(song, t, 0.8, fade_at=fades)) > 0).all()
+
+
 def test_sample_runs_is_each_run_sampled_alone(salsa):
     """``sample_runs`` (one slerp for many runs) returns each run's ``sample``, one after the
     other, and with ``joints`` those joints' columns of it; frames outside a clip clamp."""
