@@ -12,7 +12,8 @@ or, for GTZAN, ``beats/gtzan_<genre>_<id>.beats`` beside ``audio/<genre>.<id>.wa
 clips of ``zenny126/py`` with the annotations of ``TempoBeatDownbeat/gtzan_tempo_beat``). A
 ``.beats`` line is ``time beat-in-bar`` (1 = downbeat) or ``time bar.beat`` (Ballroom);
 annotations past the end of the audio are dropped; a file without beat-in-bar numbers is
-skipped. The genre is the name up to its first ``.`` or ``_``.
+left out of the tables and scored apart, for beat F and ``no_beat`` only (the default analysis).
+The genre is the name up to its first ``.`` or ``_``.
 
 Metrics: beat F and downbeat F at ±70 ms (``beats.beat_f_measure``); meter accuracy (the
 annotated beats per bar; a 2/4 piece reported in 4 counts as right: the dance bar is 4 beats);
@@ -106,8 +107,43 @@ def _annotation(root: Path, audio: Path) -> Path | None:
     return gtzan if gtzan.is_file() else None
 
 
+def read_beat_times(path: Path) -> np.ndarray:
+    """Beat times (K,) s from a ``.beats`` file's first column (with or without beat numbers)."""
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    return np.array([float(r[0]) for r in rows])
+
+
+def load_beat_only(root: Path) -> list[tuple[str, np.ndarray]]:
+    """``(name, beat times (K,) s)`` of the recordings of ``root`` whose annotation has beat
+    times but no beat-in-bar numbers: scored for beat F and ``no_beat`` only (``run_beat_only``)."""
+    out = []
+    for audio in sorted((root / "audio").iterdir()):
+        ann = _annotation(root, audio)
+        if ann is not None and read_beats(ann) is None:
+            out.append((audio.name, read_beat_times(ann)))
+    return out
+
+
+def run_beat_only(root: Path, clips: list[tuple[str, np.ndarray]]) -> None:
+    """The default analysis on the recordings annotated with beats only: beat F, and which are
+    refused (``no_beat`` on music counts against issue 23's target like any other)."""
+    if not clips:
+        return
+    print(f"\nbeats annotated without bar numbers ({len(clips)} clips): default analysis")
+    for name, times in clips:
+        y, sr = load_audio(root / "audio" / name)
+        try:
+            bt = track_evidence(beat_evidence(y, sr, models=BeatParams().models), BeatParams())
+        except AudioError as exc:
+            print(f"  {name:<26} refused: {exc.code}")
+            continue
+        f = beat_f_measure(times[times <= len(y) / sr], bt.beats)
+        print(f"  {name:<26} beat F {f:.3f}, {bt.tempo_bpm:.1f} BPM")
+
+
 def load_clips(root: Path, held_out_last: int) -> list[Clip]:
-    """The annotated recordings of ``root``, their evidence computed once."""
+    """The recordings of ``root`` annotated with beat-in-bar numbers, their evidence computed
+    once (those with beat times only: ``load_beat_only``)."""
     clips: list[Clip] = []
     for audio in sorted((root / "audio").iterdir()):
         ann = _annotation(root, audio)
@@ -285,6 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     warm_up()
     clips = load_clips(root, args.held_out_last)
     run(clips)
+    run_beat_only(root, load_beat_only(root))
     if args.batch:
         run_batch(root)
     return 0
