@@ -5,12 +5,12 @@ beat-anchored time-warp (every beat of the node on the song's beat of the same n
 hand over to each other where they match best within a beat of each bar line, with root alignment
 and inertialized offsets (``motion.stitch``; docs/rendering.md), the stitched dance is re-timed
 on the song's beats (``beat_timing``: its stops onto the beats, and slowing into every beat), it
-is placed on the stage
-where the search planned the path, and the feet are cleaned (``clean_foot_skate``). Frame 0 of
-every file is t = 0 of the song: before the first bar the first pose is held, after the last bar
-the last pose, so an artist can drop the audio and the animation on one timeline. Bar ``b``
-occupies frames ``[round(start_b·fps), round(start_{b+1}·fps))``; the frames where its node takes
-over (``seams``) lie within a beat of its first.
+is placed on the stage where the search planned the path, and the feet are cleaned
+(``clean_foot_skate``). Frame 0 of every file is t = 0 of the song: before the first bar the
+first pose is held, after the last bar the last pose, so an artist can drop the audio and the
+animation on one timeline. Bar ``b`` occupies frames ``[round(start_b·fps),
+round(start_{b+1}·fps))``; the frames where its node takes over (``seams``) lie within a beat
+of its first.
 
 Files in ``out_dir``:
 
@@ -162,7 +162,7 @@ def render_path(
     stitched dance is moved there and the small drift between stitching and the plan is spread
     linearly over each bar, so stage bounds and waypoints the search honoured hold on the file.
     ``land_stops``, ``beat_accent``: the stitched dance's stops are moved onto the song's beats,
-    and it slows into every beat by ``beat_accent`` ([0, 1)), before it is placed and its feet
+    and it slows into every beat by ``beat_accent`` ([0, 0.8]), before it is placed and its feet
     cleaned (``beat_timing``).
     """
     from dancegraph.motion.contacts import clean_foot_skate
@@ -289,6 +289,7 @@ def beat_timing(
 
     fps = float(dance.fps)
     frames = np.asarray(frames)
+    bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     if not land_stops and accent <= 0.0:
         return dance, frames
     step = max(1, int(fps // STOP_FPS))
