@@ -495,3 +495,58 @@ def open_graph(store: ObjectStore, name: str, version: str | None = None) -> Mot
 def graph_from_arrays(arrays: dict[str, np.ndarray], manifest: dict) -> MotionGraph:
     """An in-memory graph (no folder), e.g. for tests and benchmarks."""
     return MotionGraph(manifest=dict(manifest), arrays=dict(arrays))
+
+
+def bare_graph(
+    src: np.ndarray,
+    dst: np.ndarray,
+    costs: np.ndarray,
+    *,
+    n_nodes: int,
+    clips: list[str],
+    **arrays: np.ndarray,
+) -> MotionGraph:
+    """An in-memory graph of ``n_nodes`` interchangeable one-beat nodes with neutral arrays
+    (zero style, features, displacement and root path; signature 0; no source, no mirror; one
+    still frame of one joint as their motion) and the edges ``src (E,)`` → ``dst (E,)`` at
+    ``costs (E,)``; ``arrays`` replace any array by name (e.g. ``anchoring``, ``mirror_of``).
+    ``clips``: the clip ids ``node_clip`` indexes. Why: the search's kernel warm-up and its
+    tests need a graph that differs from nothing only where they say so."""
+    n, d = n_nodes, 4
+    z = np.zeros
+    src = np.asarray(src, dtype=np.int64)
+    order = np.argsort(src, kind="stable")
+    base: dict[str, np.ndarray] = {
+        "node_clip": z(n, np.int32),
+        "node_bar": np.arange(n, dtype=np.int32),
+        "node_kind": z(n, np.int8),
+        "node_tags": z(n, np.uint32),
+        "node_source": np.full((n, 2), -1, np.int32),
+        "mirror_of": np.full(n, -1, np.int32),
+        "style": z((n, 32), np.float32),
+        "signature": z(n, np.uint8),
+        "motif": z(n, np.int32),
+        "entry": z((n, d), np.float32),
+        "exit": z((n, d), np.float32),
+        "entry_pc": z((n, d), np.float32),
+        "exit_pc": z((n, d), np.float32),
+        "disp": z((n, 3), np.float32),
+        "radius": z(n, np.float32),
+        "root_path": z((n, 8, 2), np.float32),
+        "duration": np.ones(n, np.float32),
+        "indptr": np.r_[0, np.cumsum(np.bincount(src, minlength=n))].astype(np.int64),
+        "indices": np.asarray(dst, dtype=np.int32)[order],
+        "costs": np.asarray(costs, dtype=np.float32)[order],
+        "motion_row": z(n, np.int32),
+        "root": z((1, 4, 3), np.float32),
+        "rotations": z((1, 4, 1, 4), np.float16),
+    }
+    base.update({k: np.asarray(v) for k, v in arrays.items()})
+    manifest = {
+        "clips": list(clips),
+        "tags": ["original"],
+        "pc_blocks": [d],
+        "feature_blocks": [d],
+        "params": {},
+    }
+    return graph_from_arrays(base, manifest)

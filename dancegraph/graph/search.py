@@ -335,45 +335,20 @@ def placed_motion(
 def warm_up() -> None:
     """Compile (or load from numba's cache) the search kernel on a two-node graph, so a service's
     first real query does not pay for it."""
-    from dancegraph.graph.artifact import graph_from_arrays
-
-    n, d = 2, 4
-    z = np.zeros
-    arrays: dict[str, np.ndarray] = {
-        "node_clip": z(n, np.int32),
-        "node_bar": np.arange(n, dtype=np.int32),
-        "node_kind": z(n, np.int8),
-        "node_tags": z(n, np.uint32),
-        "node_source": z((n, 2), np.int32),
-        "mirror_of": np.array([1, 0], np.int32),
-        "style": z((n, 32), np.float32),
-        "signature": z(n, np.uint8),
-        "motif": z(n, np.int32),
-        "entry": z((n, d), np.float32),
-        "exit": z((n, d), np.float32),
-        "entry_pc": z((n, d), np.float32),
-        "exit_pc": z((n, d), np.float32),
-        "disp": z((n, 3), np.float32),
-        "radius": z(n, np.float32),
-        "root_path": z((n, 8, 2), np.float32),
-        "duration": np.ones(n, np.float32),
-        "indptr": np.array([0, 1, 2], np.int64),
-        "indices": np.array([1, 0], np.int32),
-        "costs": z(2, np.float32),
-        "motion_row": z(n, np.int32),
-        "root": z((1, 4, 3), np.float32),
-        "rotations": z((1, 4, 1, 4), np.float16),
-    }
-    manifest = {
-        "clips": ["w"],
-        "tags": ["original"],
-        "pc_blocks": [d],
-        "feature_blocks": [d],
-        "params": {},
-    }
-    graph = graph_from_arrays(arrays, manifest)
     from types import SimpleNamespace
 
+    from dancegraph.graph.artifact import bare_graph
+
+    z = np.zeros
+    graph = bare_graph(
+        np.array([0, 1]),
+        np.array([1, 0]),
+        z(2),
+        n_nodes=2,
+        clips=["w"],
+        mirror_of=np.array([1, 0], np.int32),
+        node_source=z((2, 2), np.int32),
+    )
     bars = np.array([[0.0, 2.0], [2.0, 4.0]])
     analysis = SimpleNamespace(
         bars=bars,

@@ -593,44 +593,24 @@ def _twins(anchoring: np.ndarray | None):
     """Four nodes equal in everything the search reads (style, signature, edges: every node to
     every other at the same cost), differing only in their ``anchoring`` (None: no array, a
     graph built before it)."""
-    from dancegraph.graph.artifact import graph_from_arrays
+    from dancegraph.graph.artifact import bare_graph
 
-    n, d = 4, 4
-    z = np.zeros
+    n = 4
     src = np.repeat(np.arange(n), n - 1)
     dst = np.array([q for p in range(n) for q in range(n) if q != p])
-    arrays = {
-        "node_clip": np.arange(n, dtype=np.int32),
-        "node_bar": z(n, np.int32),
-        "node_kind": z(n, np.int8),
-        "node_tags": np.ones(n, np.uint32),
-        "node_source": np.full((n, 2), -1, np.int32),
-        "mirror_of": np.full(n, -1, np.int32),
-        "style": z((n, 32), np.float32),
-        "signature": np.full(n, 0b01010101, np.uint8),
-        "motif": z(n, np.int32),
-        "entry": z((n, d), np.float32),
-        "exit": z((n, d), np.float32),
-        "entry_pc": z((n, d), np.float32),
-        "exit_pc": z((n, d), np.float32),
-        "disp": z((n, 3), np.float32),
-        "radius": z(n, np.float32),
-        "root_path": z((n, 8, 2), np.float32),
-        "duration": np.ones(n, np.float32),
-        "indptr": np.r_[0, np.cumsum(np.bincount(src, minlength=n))].astype(np.int64),
-        "indices": dst.astype(np.int32),
-        "costs": np.full(dst.size, 5.0, np.float32),
-    }
-    if anchoring is not None:
-        arrays["anchoring"] = np.asarray(anchoring, np.float32)
-    manifest = {
-        "clips": [f"c{k}" for k in range(n)],
-        "tags": ["original"],
-        "pc_blocks": [d],
-        "feature_blocks": [d],
-        "params": {},
-    }
-    return graph_from_arrays(arrays, manifest)
+    extra = {} if anchoring is None else {"anchoring": np.asarray(anchoring, np.float32)}
+    return bare_graph(
+        src,
+        dst,
+        np.full(dst.size, 5.0),
+        n_nodes=n,
+        clips=[f"c{k}" for k in range(n)],
+        node_clip=np.arange(n, dtype=np.int32),
+        node_bar=np.zeros(n, np.int32),
+        node_tags=np.ones(n, np.uint32),
+        signature=np.full(n, 0b01010101, np.uint8),
+        **extra,
+    )
 
 
 def test_anchoring_term_prefers_well_anchored_nodes(monkeypatch):
