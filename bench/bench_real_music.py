@@ -149,7 +149,7 @@ def load_clips(root: Path, held_out_last: int) -> list[Clip]:
         ann = _annotation(root, audio)
         read = read_beats(ann) if ann else None
         if read is None:
-            print(f"skipped {audio.name}: no beat-in-bar annotation")
+            print(f"{audio.name}: no beat-in-bar annotation (scored apart, below, if it has beats)")
             continue
         y, sr = load_audio(audio)
         times, pos = read

@@ -156,6 +156,15 @@ def _turns(phase: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return p[order], v[order]
 
 
+def _nearest(sorted_values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """For each of ``x (N,)`` the nearest of ``sorted_values (K,)`` (ascending, K >= 1), the
+    earlier one on a tie: ``(N,)``."""
+    j = np.searchsorted(sorted_values, x)
+    left = sorted_values[np.maximum(j - 1, 0)]
+    right = sorted_values[np.minimum(j, sorted_values.size - 1)]
+    return np.where(x - left <= right - x, left, right)
+
+
 def accent_anchors(
     bar_beats: np.ndarray, accents: np.ndarray, tolerance: float = 0.45, max_speed: float = 1.5
 ) -> np.ndarray:
@@ -186,10 +195,7 @@ def accent_anchors(
     beat_len = np.repeat((bb[:, 4] - bb[:, 0]) / 4.0, 5)
     period = np.full(times.size, np.inf)
     np.minimum.at(period, group, beat_len)
-    j = np.searchsorted(acc, times)
-    left, right = acc[np.maximum(j - 1, 0)], acc[np.minimum(j, acc.size - 1)]
-    near = np.where(times - left <= right - times, left, right)
-    shift = near - times
+    shift = _nearest(acc, times) - times
     anchored = np.abs(shift) <= tolerance * period
     grp = group.reshape(-1, 5)
     lo, hi = grp[:, :4].reshape(-1), grp[:, 1:].reshape(-1)  # every bar's beat intervals
@@ -276,7 +282,7 @@ def accent_map(
     local: float | np.ndarray = depth
     fade = np.zeros(0) if fade_at is None else phase(np.asarray(fade_at, dtype=float).ravel())
     if fade.size and depth > 0.0:
-        nearest = np.abs(p[:, None] - np.sort(fade)[None, :]).min(axis=1)
+        nearest = np.abs(p - _nearest(np.sort(fade), p))
         near = nearest < ACCENT_FADE_BEATS
         calm = np.where(near, 0.5 * (1.0 + np.cos(np.pi * nearest / ACCENT_FADE_BEATS)), 0.0)
         local = depth * (1.0 - calm)
