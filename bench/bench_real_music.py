@@ -2,9 +2,9 @@
 for the default analysis and for each step of the beat pipeline switched off (or, for the steps
 off by default, on).
 
-Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]``; the
-folder comes from ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and the benchmark skips (exit 0)
-when neither names one. The recordings are copyrighted: they live outside the repository, are
+Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]
+[--non-music DIR]``; the folder comes from ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and the
+annotated part skips (exit 0) when neither names one. The recordings are copyrighted: they live outside the repository, are
 never committed, and only the numbers go to docs/music.md.
 
 Folder layout: ``audio/<name>.wav`` (any format ``load_audio`` reads) and ``beats/<name>.beats``
@@ -25,7 +25,9 @@ tracked downbeat, the better phase). Chance rows:
 the default's beats moved half a beat, and its downbeats moved one beat (the wrong phase at the
 right tempo). ``--held-out-last K`` keeps the last K files of each genre apart: the steps were
 chosen on the rest and are reported on both. ``--batch`` also times ``dancegraph analyze
---jsonl`` over all the files in one process (wall seconds, and per 30 s of audio).
+--jsonl`` over all the files in one process (wall seconds, and per 30 s of audio). The
+recordings that are not music (the shared non-music clips, and each ``--non-music DIR``) run
+first: each should be refused, and the count given beats is printed.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from dancegraph.music.beats import (  # noqa: E402
     warm_up,
 )
 from dancegraph.music.decode import load_audio  # noqa: E402
+from dancegraph.paths import shared_dir  # noqa: E402
 
 OCTAVE_TOL = 0.08
 
@@ -139,6 +142,45 @@ def run_beat_only(root: Path, clips: list[tuple[str, np.ndarray]]) -> None:
             continue
         f = beat_f_measure(times[times <= len(y) / sr], bt.beats)
         print(f"  {name:<26} beat F {f:.3f}, {bt.tempo_bpm:.1f} BPM")
+
+
+def run_non_music(folders: list[Path]) -> None:
+    """The default analysis on recordings that are not music (speech, noise, animals): every
+    one should be refused (``no_beat``, or ``audio_too_short`` under 3 s). Prints each file's
+    outcome with its pulse strength and speech evidence, and the count given beats."""
+    files = [
+        p
+        for folder in folders
+        if folder.is_dir()
+        for p in sorted(folder.iterdir())
+        if p.suffix.lower() in {".wav", ".ogg", ".flac", ".mp3"}
+    ]
+    if not files:
+        return
+    print(f"\nnot music ({len(files)} files in {', '.join(map(str, folders))}): default analysis")
+    given, analysed = [], 0
+    for path in files:
+        try:
+            y, sr = load_audio(path)
+            bt = track_evidence(beat_evidence(y, sr, models=BeatParams().models), BeatParams())
+        except AudioError as exc:
+            analysed += exc.code != "audio_too_short"
+            print(f"  {path.name[:44]:<44} refused: {exc.code} {exc.message[:70]}")
+            continue
+        analysed += 1
+        given.append(path.name)
+        ev = bt.evidence
+        speech = (  # measured for a faint pulse only
+            f", pauses {ev['pause_share']:.2f}, chroma persistence {ev['chroma_persistence']:.2f}"
+            if "pause_share" in ev
+            else ""
+        )
+        strength = ev.get(f"{bt.method}_strength", float("nan"))
+        print(
+            f"  {path.name[:44]:<44} GIVEN BEATS: {bt.tempo_bpm:.1f} BPM, strength "
+            f"{strength:.2f}{speech}"
+        )
+    print(f"  non-music given beats: {len(given)} of {analysed} analysed (3 s or longer)")
 
 
 def load_clips(root: Path, held_out_last: int) -> list[Clip]:
@@ -313,12 +355,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--root", default=os.environ.get("DANCEGRAPH_REAL_MUSIC"))
     ap.add_argument("--held-out-last", type=int, default=4, metavar="K")
     ap.add_argument("--batch", action="store_true", help="also time a batch analyze")
+    ap.add_argument(
+        "--non-music",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder of recordings that are not music, all to be refused (repeatable; the "
+        "shared non-music clips always run)",
+    )
     args = ap.parse_args(argv)
+    non_music = [shared_dir() / "datasets" / "music" / "nonmusic", *map(Path, args.non_music)]
     root = Path(args.root) if args.root else None
+    warm_up()
+    run_non_music(non_music)
     if root is None or not (root / "audio").is_dir():
         print("real-music benchmark skipped: no folder (--root or $DANCEGRAPH_REAL_MUSIC)")
         return 0
-    warm_up()
     clips = load_clips(root, args.held_out_last)
     run(clips)
     run_beat_only(root, load_beat_only(root))

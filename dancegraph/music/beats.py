@@ -119,6 +119,10 @@ NO_BEAT: dict[str, Any] = {
         "clear_contrast": 2.4,
         "clear_salience": 0.2,
     },
+    # a faint pulse that sounds like speech is refused (:func:`speech_evidence`): pauses in at
+    # least this share of the frames and a harmony (chroma persistence) under this; both needed
+    "speech_pauses": 0.14,
+    "speech_chroma": 0.7,
     # the same on librosa's onset envelope (fallback only): contrast and salience each, no
     # faint zone (speech reaches a strength of 0.33 here, on a salience under 0.08)
     "librosa": {
@@ -687,12 +691,13 @@ def _rejoin(moved: np.ndarray, times: np.ndarray) -> np.ndarray:
 @dataclass
 class _Spectral:
     """Frame-rate (50 fps) curves from one STFT: onset strength (T,), chroma (12, T), bass
-    onsets (T,) and noise onsets in the snare band (T,)."""
+    onsets (T,), noise onsets in the snare band (T,) and the frames' RMS level (T,)."""
 
     onset_env: np.ndarray
     chroma: np.ndarray
     bass_onset: np.ndarray
     snare_onset: np.ndarray
+    level: np.ndarray
 
 
 def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectral:
@@ -723,6 +728,7 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
     chroma = np.empty((12, n_frames), dtype=np.float32)
     bass = np.empty(n_frames, dtype=np.float32)
     snare = np.empty(n_frames, dtype=np.float32)
+    level = np.empty(n_frames, dtype=np.float32)
     last = None  # the previous chunk's last frame of snare-band log power
     for a in range(0, n_frames, chunk):
         b = min(a + chunk, n_frames)
@@ -731,6 +737,7 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
         mel[:, a:b] = mel_fb @ power
         chroma[:, a:b] = chroma_fb[:, n_bass:] @ power[n_bass:]
         bass[a:b] = mag[:n_bass].sum(axis=0)
+        level[a:b] = np.sqrt(power.mean(axis=0))
         band = np.ascontiguousarray(power.T[:, snare_band])  # (frames, bins): rows contiguous
         log_band = np.log(band + np.float32(1e-10))
         rise = np.diff(log_band, axis=0, prepend=log_band[:1] if last is None else last)
@@ -742,7 +749,7 @@ def _spectral(y22: np.ndarray, n_fft: int = 2048, chunk: int = 2048) -> _Spectra
     )
     chroma = librosa.util.normalize(chroma, norm=np.inf, axis=0)  # as chroma_stft does
     bass_onset = np.maximum(np.diff(bass, prepend=bass[:1]), 0)
-    return _Spectral(onset_env, chroma, bass_onset, snare)
+    return _Spectral(onset_env, chroma, bass_onset, snare, level)
 
 
 def _librosa_beats(spec: _Spectral) -> tuple[np.ndarray, np.ndarray, int]:
@@ -797,7 +804,7 @@ def _decode_at_level(
         for level in levels
     ]
     best = max(decodes, key=lambda d: d.log_prob)
-    usable = _usable(best.times, act, ev.spec.onset_env, dict(ev.values), "beatnet")[0]
+    usable = _usable(best.times, act, ev.spec, dict(ev.values), "beatnet")[0]
     return best if usable else None
 
 
@@ -1247,7 +1254,7 @@ def track_evidence(ev: Evidence, params: BeatParams | None = None) -> BeatTracki
     onset_env = ev.spec.onset_env
     if ev.act is not None:
         dec = barpointer.decode(ev.act, params.decoder)
-        ok, why = _usable(dec.times, ev.act, onset_env, values, prefix="beatnet")
+        ok, why = _usable(dec.times, ev.act, ev.spec, values, prefix="beatnet")
         if not ok:  # BeatNet's verdict is final: librosa is no better judge of "no beat"
             raise AudioError(f"no beat: {why}", code="no_beat")
         weak = bool(why)
@@ -1258,7 +1265,7 @@ def track_evidence(ev: Evidence, params: BeatParams | None = None) -> BeatTracki
         name, times, positions, meters = "beatnet", grid.times, grid.positions, grid.meters
     else:
         lt, lp, lm = ev.librosa_beats()
-        ok, why = _usable(lt, None, onset_env, values, prefix="librosa")
+        ok, why = _usable(lt, None, ev.spec, values, prefix="librosa")
         if not ok:
             raise AudioError(f"no beat: {why}", code="no_beat")
         weak = bool(why)
@@ -1308,8 +1315,44 @@ def track_evidence(ev: Evidence, params: BeatParams | None = None) -> BeatTracki
     )
 
 
+#: a frame is a pause where its RMS level is under this share (-14 dB) of the level about it:
+#: a gap between words, deeper than the dips of a rhythm part ...
+PAUSE_RATIO = 0.2
+#: ... averaged over this many seconds (a syllable and its gap)
+PAUSE_CONTEXT_S = 1.0
+#: the chroma is compared with itself this far ahead: a held chord outlasts it, a syllable not
+CHROMA_LAG_S = 0.25
+
+
+def speech_evidence(spec: _Spectral) -> tuple[float, float]:
+    """What tells speech from music with a faint pulse: (pause share, chroma persistence).
+
+    The pause share is the share of frames whose RMS level is under ``PAUSE_RATIO`` of its mean
+    over ``PAUSE_CONTEXT_S`` about it (speech stops between words and phrases; music sustains
+    and reverberates). The chroma persistence is the level-weighted cosine between each frame's
+    chroma and the chroma ``CHROMA_LAG_S`` later (a voice glides from syllable to syllable;
+    notes and chords are held). Both in [0, 1]; 0 and 0 for audio too short to compare. Why:
+    BeatNet's pulse alone can read a speaker's syllables as a faint beat."""
+    level = spec.level.astype(np.float64)
+    n = len(level)
+    lag = int(round(CHROMA_LAG_S * FPS))
+    if n <= lag:
+        return 0.0, 0.0
+    width = max(1, int(round(PAUSE_CONTEXT_S * FPS)))
+    kernel = np.ones(width) / width
+    about = np.convolve(np.pad(level, width // 2, mode="edge"), kernel, mode="valid")[:n]
+    pauses = float(np.mean(level < PAUSE_RATIO * about))
+    a = spec.chroma[:, :-lag].astype(np.float64)
+    b = spec.chroma[:, lag:].astype(np.float64)
+    norms = np.linalg.norm(a, axis=0) * np.linalg.norm(b, axis=0)
+    cos = (a * b).sum(axis=0) / np.maximum(norms, 1e-12)
+    weight = level[:-lag]
+    persistence = float((cos * weight).sum() / max(weight.sum(), 1e-12))
+    return pauses, persistence
+
+
 def _usable(
-    times: np.ndarray, act: np.ndarray | None, onset_env: np.ndarray, evidence: dict, prefix: str
+    times: np.ndarray, act: np.ndarray | None, spec: _Spectral, evidence: dict, prefix: str
 ) -> tuple[bool, str]:
     """The no-beat test for one tracker; fills ``evidence`` and returns (usable, why not, or
     why the pulse is weak where usable; "" for a clear pulse).
@@ -1319,7 +1362,10 @@ def _usable(
     strength) at the beats against its mean (contrast) and its periodicity at the beat period
     (salience). Their product is the pulse strength: soft classical music has little contrast
     and a solid metal wall of drums little contrast too, but each beats speech on the product.
+    A faint pulse (under the clear contrast or salience) in audio that pauses like speech and
+    whose harmony does not hold (:func:`speech_evidence`) is speech, not music.
     """
+    onset_env = spec.onset_env
     times = np.asarray(times)
     n = len(times)
     evidence[f"{prefix}_beats"] = n
@@ -1355,6 +1401,14 @@ def _usable(
     if regularity < NO_BEAT["min_regularity"]:
         return False, f"irregular beat intervals (regularity {regularity:.2f})"
     if contrast < limits["clear_contrast"] or salience < limits["clear_salience"]:
+        pauses, persistence = speech_evidence(spec)
+        evidence["pause_share"] = pauses
+        evidence["chroma_persistence"] = persistence
+        if pauses >= NO_BEAT["speech_pauses"] and persistence < NO_BEAT["speech_chroma"]:
+            return False, (
+                f"a faint pulse in speech-like sound (pauses in {pauses:.0%} of the frames, "
+                f"chroma persistence {persistence:.2f}; strength {strength:.2f})"
+            )
         return True, f"contrast {contrast:.2f}, salience {salience:.2f}, strength {strength:.2f}"
     return True, ""
 

@@ -31,6 +31,7 @@ from dancegraph.music.beats import (
     mend_off_beat_grid,
     mend_swing_off_beats,
     octave_switch,
+    speech_evidence,
     split_beats,
     subdivision_strength,
     track_beats,
@@ -1067,6 +1068,62 @@ def test_non_music_clips_have_no_beat(nonmusic_dir: Path) -> None:
         assert err.value.code == "no_beat", path.name
 
 
+def _spoken(seconds: float, seed: int) -> np.ndarray:
+    """Speech-like sound at ``SR``: voiced syllables (110-220 Hz, each gliding a fifth up or
+    down, 10 harmonics, 120-260 ms) in words of 1-4 syllables, words 150-500 ms apart."""
+    rng = np.random.default_rng(seed)
+    y = np.zeros(int(seconds * SR), dtype=np.float64)
+    at = int(0.2 * SR)
+    while at < len(y) - SR // 2:
+        for _ in range(rng.integers(1, 5)):
+            n = int(rng.uniform(0.12, 0.26) * SR)
+            f0 = rng.uniform(110, 220) * np.exp(np.linspace(0, rng.choice([-0.4, 0.4]), n))
+            phase = 2 * np.pi * np.cumsum(f0) / SR
+            tone = sum(np.sin(k * phase) / k for k in range(1, 11))
+            y[at : at + n] += tone * np.hanning(n)
+            at += n + int(rng.uniform(0.01, 0.06) * SR)
+        at += int(rng.uniform(0.15, 0.5) * SR)
+    return (0.3 * y / np.abs(y).max()).astype(np.float32)
+
+
+def test_speech_evidence_tells_held_chords_from_spoken_syllables() -> None:
+    """Speech pauses between words and glides from syllable to syllable; chords are held. The
+    two measures of :func:`speech_evidence` fall on either side of the no-beat test's limits,
+    and a chord progression under the same words reads as music (no pauses, held harmony)."""
+    t = np.arange(12 * SR) / SR
+    roots = np.repeat([220.0, 174.6, 261.6, 196.0], 3 * SR)[: len(t)]  # a chord every 3 s
+    phase = 2 * np.pi * np.cumsum(roots) / SR
+    chords = sum(np.sin(r * phase) for r in (1.0, 1.26, 1.5)).astype(np.float32) * 0.2
+    spoken = _spoken(12.0, seed=4)
+    pauses, held = speech_evidence(_spectral(spoken))
+    assert pauses >= NO_BEAT["speech_pauses"] and held < NO_BEAT["speech_chroma"]
+    pauses, held = speech_evidence(_spectral(chords))
+    assert pauses < 0.02 and held > 0.9
+    pauses, held = speech_evidence(_spectral(chords + 0.5 * spoken))
+    assert pauses < NO_BEAT["speech_pauses"] and held >= NO_BEAT["speech_chroma"]
+
+
+def test_a_faint_pulse_in_speech_is_refused(
+    nonmusic_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A LibriSpeech reading whose syllables BeatNet reads as a faint pulse (the pulse floor
+    lowered so that it is over it, as jfk's speech is) is refused as speech; without the
+    speech test the same clip would get beats with a ``weak_pulse`` warning."""
+    path = nonmusic_dir / "198-209-0000.hq.ogg"
+    if not path.exists():
+        pytest.skip(f"{path} not found (set DANCEGRAPH_SHARED)")
+    y, sr = load_audio(path)
+    ev = beat_evidence(y, sr)
+    monkeypatch.setitem(NO_BEAT["beatnet"], "min_strength", 0.1)
+    with pytest.raises(AudioError) as err:
+        track_evidence(ev)
+    assert err.value.code == "no_beat" and "speech-like" in err.value.message
+    monkeypatch.setitem(NO_BEAT, "speech_pauses", 1.01)
+    res = track_evidence(ev)
+    assert any(w.startswith("weak_pulse") for w in res.warnings)
+    assert res.evidence["pause_share"] >= 0.14 and res.evidence["chroma_persistence"] < 0.7
+
+
 @pytest.mark.parametrize("kind", ["silence", "white_noise", "clipped_square", "quiet_noise"])
 def test_synthetic_non_music_has_no_beat(kind: str) -> None:
     rng = np.random.default_rng(1)
@@ -1164,6 +1221,7 @@ def test_a_faint_pulse_gets_beats_with_a_warning_not_no_beat() -> None:
         res = track_beats(y, song.sr)
         assert any(w.startswith("weak_pulse") for w in res.warnings)
         assert res.evidence["beatnet_contrast"] < NO_BEAT["beatnet"]["clear_contrast"]
+        assert res.evidence["pause_share"] < NO_BEAT["speech_pauses"]  # music, not speech
         assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
         assert res.tempo_confidence < 0.5
 
