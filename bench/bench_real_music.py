@@ -3,9 +3,10 @@ for the default analysis and for each step of the beat pipeline switched off (or
 off by default, on).
 
 Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]
-[--non-music DIR]``; the folder comes from ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and the
-annotated part skips (exit 0) when neither names one. The recordings are copyrighted: they live outside the repository, are
-never committed, and only the numbers go to docs/music.md.
+[--non-music DIR] [--music DIR]``; the annotated folder comes from ``--root`` or
+``$DANCEGRAPH_REAL_MUSIC`` and its part skips (exit 0) when neither names one. The recordings
+are copyrighted: they live outside the repository, are never committed, and only the numbers
+go to docs/music.md.
 
 Folder layout: ``audio/<name>.wav`` (any format ``load_audio`` reads) and ``beats/<name>.beats``
 or, for GTZAN, ``beats/gtzan_<genre>_<id>.beats`` beside ``audio/<genre>.<id>.wav`` (the GTZAN
@@ -27,7 +28,8 @@ right tempo). ``--held-out-last K`` keeps the last K files of each genre apart: 
 chosen on the rest and are reported on both. ``--batch`` also times ``dancegraph analyze
 --jsonl`` over all the files in one process (wall seconds, and per 30 s of audio). The
 recordings that are not music (the shared non-music clips, and each ``--non-music DIR``) run
-first: each should be refused, and the count given beats is printed.
+first: each should be refused, and the count given beats is printed; then each ``--music
+DIR`` of music without annotations, where each should get beats (false ``no_beat`` counted).
 """
 
 from __future__ import annotations
@@ -144,10 +146,11 @@ def run_beat_only(root: Path, clips: list[tuple[str, np.ndarray]]) -> None:
         print(f"  {name:<26} beat F {f:.3f}, {bt.tempo_bpm:.1f} BPM")
 
 
-def run_non_music(folders: list[Path]) -> None:
-    """The default analysis on recordings that are not music (speech, noise, animals): every
-    one should be refused (``no_beat``, or ``audio_too_short`` under 3 s). Prints each file's
-    outcome with its pulse strength and speech evidence, and the count given beats."""
+def run_unannotated(folders: list[Path], music: bool) -> None:
+    """The default analysis on recordings without annotations: music (every one should get
+    beats: a refusal is a false ``no_beat``) or not music (speech, noise, animals: every one
+    should be refused, ``no_beat``, or ``audio_too_short`` under 3 s). Prints each file's
+    outcome with its pulse strength and speech evidence, and the count of wrong outcomes."""
     files = [
         p
         for folder in folders
@@ -157,18 +160,21 @@ def run_non_music(folders: list[Path]) -> None:
     ]
     if not files:
         return
-    print(f"\nnot music ({len(files)} files in {', '.join(map(str, folders))}): default analysis")
-    given, analysed = [], 0
+    kind = "music without annotations" if music else "not music"
+    print(f"\n{kind} ({len(files)} files in {', '.join(map(str, folders))}): default analysis")
+    wrong, analysed = 0, 0
     for path in files:
         try:
             y, sr = load_audio(path)
             bt = track_evidence(beat_evidence(y, sr, models=BeatParams().models), BeatParams())
         except AudioError as exc:
             analysed += exc.code != "audio_too_short"
-            print(f"  {path.name[:44]:<44} refused: {exc.code} {exc.message[:70]}")
+            wrong += music and exc.code == "no_beat"
+            mark = "REFUSED" if music else "refused"
+            print(f"  {path.name[:44]:<44} {mark}: {exc.code} {exc.message[:70]}")
             continue
         analysed += 1
-        given.append(path.name)
+        wrong += not music
         ev = bt.evidence
         speech = (  # measured for a faint pulse only
             f", pauses {ev['pause_share']:.2f}, chroma persistence {ev['chroma_persistence']:.2f}"
@@ -176,11 +182,13 @@ def run_non_music(folders: list[Path]) -> None:
             else ""
         )
         strength = ev.get(f"{bt.method}_strength", float("nan"))
+        mark = "beats" if music else "GIVEN BEATS"
         print(
-            f"  {path.name[:44]:<44} GIVEN BEATS: {bt.tempo_bpm:.1f} BPM, strength "
+            f"  {path.name[:44]:<44} {mark}: {bt.tempo_bpm:.1f} BPM, strength "
             f"{strength:.2f}{speech}"
         )
-    print(f"  non-music given beats: {len(given)} of {analysed} analysed (3 s or longer)")
+    what = "false no_beat" if music else "non-music given beats"
+    print(f"  {what}: {wrong} of {analysed} analysed (3 s or longer)")
 
 
 def load_clips(root: Path, held_out_last: int) -> list[Clip]:
@@ -363,11 +371,19 @@ def main(argv: list[str] | None = None) -> int:
         help="a folder of recordings that are not music, all to be refused (repeatable; the "
         "shared non-music clips always run)",
     )
+    ap.add_argument(
+        "--music",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder of music without annotations, all to get beats (repeatable)",
+    )
     args = ap.parse_args(argv)
     non_music = [shared_dir() / "datasets" / "music" / "nonmusic", *map(Path, args.non_music)]
     root = Path(args.root) if args.root else None
     warm_up()
-    run_non_music(non_music)
+    run_unannotated(non_music, music=False)
+    run_unannotated([Path(d) for d in args.music], music=True)
     if root is None or not (root / "audio").is_dir():
         print("real-music benchmark skipped: no folder (--root or $DANCEGRAPH_REAL_MUSIC)")
         return 0

@@ -8,7 +8,8 @@ An explicit pipeline over one parameters object (:class:`BeatParams`):
    strength, chroma above the bass, bass and snare-band onsets).
 2. The bar-pointer decoder (:mod:`dancegraph.music.barpointer`) over meters 2, 3 and 4, bar
    restarts allowed between sections; then the no-beat test (:func:`_usable`: the pulse
-   strength of the activation; a faint one passes with a ``weak_pulse`` warning).
+   strength of the activation; a faint one passes with a ``weak_pulse`` warning unless the
+   sound pauses like speech, :func:`speech_evidence`).
 3. The steps of :data:`STEPS`, in that order, each a function from the grid and the evidence
    to a new grid and its warnings, each switched by name in ``BeatParams.steps``
    (:data:`DEFAULT_STEPS` by default): ``dotted_pulse`` (decode again at the song's pulse,
@@ -993,11 +994,17 @@ def _halve_step(grid: Grid, ev: Evidence, params: BeatParams) -> tuple[Grid, lis
         grid.times, ev.act, spec.onset_env, spec.bass_onset, spec.chroma, spec.snare_onset
     )
     keep = np.arange(len(grid.times)) % 2 == (0 if parity >= 0 else 1)
+    # the kept beats counted in 4 from the first that was a downbeat (the bar grouping, which
+    # needs 16 beats, decides again): the decoder's positions of every other eighth (1 3 1 3)
+    # form no bar
+    downbeats = np.flatnonzero(grid.positions[keep] == 1)
+    first = int(downbeats[0]) if len(downbeats) else 0
+    counted = (np.arange(int(keep.sum())) - first) % 4 + 1
     halved = replace(
         grid,
         times=grid.times[keep],
-        positions=grid.positions[keep],
-        meters=grid.meters[keep],
+        positions=counted.astype(np.int64),
+        meters=np.full(len(counted), 4, dtype=np.int64),
         halved=True,
     )
     note = (
@@ -1121,9 +1128,9 @@ STEPS: tuple[tuple[str, StepFn], ...] = (
 
 #: The steps that run by default: those that do not cost real recordings with human annotations
 #: and keep the generated regression suite on target. Off: ``one_octave`` and ``split`` double
-#: grids the networks track steadily, ``swing`` and ``off_beat_grid`` move right grids onto the
-#: off-beats. What each does to both: docs/music.md.
-DEFAULT_STEPS = frozenset({"dotted_pulse", "halve", "slips", "group", "within_sound"})
+#: grids the networks track steadily and ``halve`` halves them, ``swing`` and ``off_beat_grid``
+#: move right grids onto the off-beats. What each does to both: docs/music.md.
+DEFAULT_STEPS = frozenset({"dotted_pulse", "slips", "group", "within_sound"})
 
 
 @dataclass(frozen=True)
@@ -1360,10 +1367,12 @@ def _usable(
     The decoder always finds *some* regular beat, so regularity alone proves nothing. What
     separates music from speech, noise and steady tones is the pulse: the activation (or onset
     strength) at the beats against its mean (contrast) and its periodicity at the beat period
-    (salience). Their product is the pulse strength: soft classical music has little contrast
-    and a solid metal wall of drums little contrast too, but each beats speech on the product.
-    A faint pulse (under the clear contrast or salience) in audio that pauses like speech and
-    whose harmony does not hold (:func:`speech_evidence`) is speech, not music.
+    (salience; where BeatNet's contrast is clear, at two beats or half a beat if higher there).
+    Their product is the pulse strength: soft classical music has little contrast and a solid
+    metal wall of drums little contrast too, but each beats speech on the product. A pulse
+    with a faint contrast or salience at the beat itself is usable with a ``weak_pulse``
+    warning, unless the audio pauses like speech and its harmony does not hold
+    (:func:`speech_evidence`): then it is speech, not music.
     """
     onset_env = spec.onset_env
     times = np.asarray(times)
@@ -1379,12 +1388,18 @@ def _usable(
     peak = peak_near(curve, np.round(times * FPS))
     contrast = float(peak.mean() / max(curve.mean(), 1e-9))
     salience = pulse_salience(curve, FPS, bpm)
-    strength = contrast * salience
+    limits = NO_BEAT["beatnet"] if act is not None else NO_BEAT["librosa"]
+    # a network firing clearly at the beats whose activation repeats every two beats or every
+    # half beat instead (half-time drums, a syncopated figure) still has a pulse
+    pulse = salience
+    if act is not None and contrast >= limits["clear_contrast"]:
+        pulse = max(salience, *(pulse_salience(curve, FPS, bpm * r) for r in (0.5, 2.0)))
+    strength = contrast * pulse
     evidence[f"{prefix}_peak"] = float(peak.mean())
     evidence[f"{prefix}_contrast"] = contrast
     evidence[f"{prefix}_salience"] = salience
+    evidence[f"{prefix}_level_salience"] = pulse
     evidence[f"{prefix}_strength"] = strength
-    limits = NO_BEAT["beatnet"] if act is not None else NO_BEAT["librosa"]
     if peak.mean() < limits["min_peak"]:
         return False, f"weak beat evidence (peak {peak.mean():.2f} < {limits['min_peak']})"
     if contrast < limits["min_contrast"]:

@@ -14,6 +14,7 @@ import pytest
 
 from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
+from dancegraph.music.analysis import four_beat_bars
 from dancegraph.music.beats import (
     BEATNET_1_1_3,
     DEFAULT_STEPS,
@@ -22,6 +23,7 @@ from dancegraph.music.beats import (
     STEPS,
     BeatParams,
     _spectral,
+    _usable,
     beat_evidence,
     beat_f_measure,
     dotted_pulse,
@@ -228,7 +230,7 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool, tempo: float |
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, hard=hard, **({"tempo_bpm": tempo} if tempo else {}))
-    res = track_beats(song.y, song.sr)
+    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("halve"))  # off by default
     assert any(w.startswith("beats_halved") for w in res.warnings)
     # the decoder's downbeats were among the eighths: moving off them is no news to report
     assert not any(w.startswith("downbeat_rephased") for w in res.warnings)
@@ -249,12 +251,14 @@ def test_grid_at_half_the_tempo_is_split(seed: int, tempo: float | None, meter: 
     18012: two bars of the song in each; downbeat F was 0.00 — the bars started on its 3rd
     beats) or in 2-beat bars (23001: meter reported 2, beat F 0.66); 3/4 in 3-beat bars each
     holding two bars of the song (13009, 15005: downbeat F was 0.00; 23002, whose beats have
-    nothing between them, was halved to 77 BPM first: 0.67). Every beat is split in two and
-    the bars regrouped, so tempo, beats, meter and downbeats are the song's."""
+    nothing between them, is halved to 77 BPM first where ``halve`` is on: 0.67). Every beat
+    is split in two and the bars regrouped, so tempo, beats, meter and downbeats are the
+    song's. (With ``halve`` off, its default, 23002 keeps the decoder's 154 BPM.)"""
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("split"))  # off by default
+    steps = ("halve", "split") if seed == 23002 else ("split",)  # both off by default
+    res = track_beats(song.y, song.sr, params=BeatParams().with_steps(*steps))
     assert any(w.startswith("beats_split") for w in res.warnings)
     assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
     assert res.meter == song.truth["meter"] == meter
@@ -385,10 +389,40 @@ def test_halving_keeps_the_half_that_forms_bars(seed: int, tempo: float | None) 
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
-    res = track_beats(song.y, song.sr)
+    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("halve"))
     assert any(w.startswith("beats_halved") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
+
+
+def _kicks(bpm: float, seconds: float) -> np.ndarray:
+    """A bare 808-style kick (a 150 -> 50 Hz sweep, 0.12 s decay) on every beat, at ``SR``."""
+    t = np.arange(int(0.25 * SR)) / SR
+    sweep = 50 + 100 * np.exp(-t / 0.03)
+    kick = np.sin(2 * np.pi * np.cumsum(sweep) / SR) * np.exp(-t / 0.12)
+    y = np.zeros(int(seconds * SR))
+    for onset in np.arange(0.25, seconds - 0.3, 60.0 / bpm):
+        i = int(onset * SR)
+        y[i : i + len(kick)] += kick
+    return (0.8 * y / np.abs(y).max()).astype(np.float32)
+
+
+def test_a_kick_on_every_beat_is_counted_at_its_tempo() -> None:
+    """A kick on every beat at 120 BPM for 10 s (BeatNet's own test loop is one): nothing sounds
+    between the beats, which the ``halve`` step (off by default) read as eighths, counting 60
+    BPM and leaving no 4-beat bar (the analysis refused it as ``no_beat``). By default the
+    networks' steady 120 stays; with ``halve`` switched on the halved grid is counted in 4, so
+    it still forms bars."""
+    y = _kicks(120.0, 10.0)
+    res = track_beats(y, SR)
+    assert abs(res.tempo_bpm - 120.0) < 1.0
+    assert not any(w.startswith("beats_halved") for w in res.warnings)
+    assert len(four_beat_bars(res.beats, res.beat_positions, res.meter, 10.0)[0]) >= 4
+    halved = track_beats(y, SR, params=BeatParams().with_steps("halve"))
+    assert any(w.startswith("beats_halved") for w in halved.warnings)
+    assert np.array_equal(halved.beat_positions, (np.arange(len(halved.beats)) - np.argmax(
+        halved.beat_positions == 1)) % 4 + 1)  # fmt: skip
+    assert len(four_beat_bars(halved.beats, halved.beat_positions, halved.meter, 10.0)[0]) >= 2
 
 
 def test_snare_curve_hears_noise_bursts_not_notes() -> None:
@@ -511,7 +545,7 @@ def test_grid_that_switches_tempo_octave_is_decoded_at_one_level(
 
     song = generate_song(seed, hard=hard, tempo_bpm=tempo)
     res = track_beats(
-        song.y, song.sr, params=BeatParams().with_steps("one_octave", "split")
+        song.y, song.sr, params=BeatParams().with_steps("one_octave", "halve", "split")
     )  # off by default
     assert any(w.startswith("beat_level_unified") for w in res.warnings)
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
@@ -1101,6 +1135,26 @@ def test_speech_evidence_tells_held_chords_from_spoken_syllables() -> None:
     assert pauses < 0.02 and held > 0.9
     pauses, held = speech_evidence(_spectral(chords + 0.5 * spoken))
     assert pauses < NO_BEAT["speech_pauses"] and held >= NO_BEAT["speech_chroma"]
+
+
+def test_a_network_firing_every_other_beat_still_has_a_pulse() -> None:
+    """Half-time drums: BeatNet fires clearly on every other decoded beat, so its activation
+    does not repeat at the beat period (salience 0: a 6.8 s dubstep loop was refused as
+    ``no_beat``) but at two beats. With a clear contrast that is a pulse (a ``weak_pulse``, the
+    beat level being unsure); the same activation spread flat (no contrast) is not."""
+    fps, beat = 50, 21  # frames: 143 BPM
+    frames = np.arange(10, 1500, beat)
+    act = np.zeros((1510, 2))
+    act[frames[::2], 0] = 0.9  # every other beat
+    t = np.arange(12 * SR) / SR
+    chords = _spectral((0.2 * np.sin(2 * np.pi * 220 * t)).astype(np.float32))
+    evidence = {"active_s": 1500 / fps}
+    ok, why = _usable(frames / fps, act, chords, evidence, "beatnet")
+    assert ok and why, why  # usable, as a weak pulse
+    assert evidence["beatnet_salience"] < 0.05 and evidence["beatnet_level_salience"] > 0.5
+    flat = np.full((1510, 2), 0.3)
+    flat[frames[::2], 0] = 0.45
+    assert not _usable(frames / fps, flat, chords, {"active_s": 30.0}, "beatnet")[0]
 
 
 def test_a_faint_pulse_in_speech_is_refused(
