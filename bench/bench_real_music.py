@@ -3,10 +3,10 @@ for the default analysis and for each step of the beat pipeline switched off (or
 off by default, on).
 
 Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]
-[--non-music DIR] [--music DIR]``; the annotated folder comes from ``--root`` or
-``$DANCEGRAPH_REAL_MUSIC`` and its part skips (exit 0) when neither names one. The recordings
-are copyrighted: they live outside the repository, are never committed, and only the numbers
-go to docs/music.md.
+[--non-music DIR] [--music DIR] [--lead-silence S ...]``; the annotated folder comes from
+``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and its part skips (exit 0) when neither names one.
+The recordings are copyrighted: they live outside the repository, are never committed, and
+only the numbers go to docs/music.md.
 
 Folder layout: ``audio/<name>.wav`` (any format ``load_audio`` reads) and ``beats/<name>.beats``
 or, for GTZAN, ``beats/gtzan_<genre>_<id>.beats`` beside ``audio/<genre>.<id>.wav`` (the GTZAN
@@ -30,6 +30,8 @@ chosen on the rest and are reported on both. ``--batch`` also times ``dancegraph
 recordings that are not music (the shared non-music clips, and each ``--non-music DIR``) run
 first: each should be refused, and the count given beats is printed; then each ``--music
 DIR`` of music without annotations, where each should get beats (false ``no_beat`` counted).
+``--lead-silence S ...`` scores the default again with S seconds of silence before each clip
+(a consistency check: the same music starting later must get the same bars).
 """
 
 from __future__ import annotations
@@ -339,6 +341,53 @@ def run(clips: list[Clip]) -> None:
     )
 
 
+def run_lead_silence(root: Path, clips: list[Clip], leads: list[float]) -> None:
+    """Downbeat F and beat F of the default analysis and of the decoder alone with ``leads``
+    seconds of silence put before each clip (its annotation moved with it), beside the clip as
+    it is: a recording that starts a little later must get the same bars. Prints, per part
+    (all, dev, held-out), the mean per lead, the mean over all leads, and the clips whose
+    downbeat F differs by more than 0.3 between leads."""
+    import dataclasses
+
+    params = {"default": BeatParams(), "decoder alone (no step)": BeatParams(steps=frozenset())}
+    down: dict[str, np.ndarray] = {k: np.zeros((len(clips), len(leads) + 1)) for k in params}
+    beat: dict[str, np.ndarray] = {k: np.zeros((len(clips), len(leads) + 1)) for k in params}
+    for i, clip in enumerate(clips):
+        y, sr = load_audio(next((root / "audio").glob(f"{clip.name}.*")))
+        for j, lead in enumerate([0.0, *leads]):
+            shifted = clip
+            if lead:
+                padded = np.concatenate([np.zeros(int(round(lead * sr)), dtype=y.dtype), y])
+                try:
+                    ev: Evidence | AudioError = beat_evidence(padded, sr)
+                except AudioError as exc:
+                    ev = exc
+                lead_s = int(round(lead * sr)) / sr
+                shifted = dataclasses.replace(clip, beats=clip.beats + lead_s, evidence=ev)
+            for label, p in params.items():
+                r = score(shifted, p)
+                down[label][i, j], beat[label][i, j] = r["down_f"], r["beat_f"]
+    cols = " ".join(f"{lead:>7.2f}" for lead in [0.0, *leads])
+    parts = {
+        "all": np.ones(len(clips), dtype=bool),
+        "dev": np.array([not c.held_out for c in clips]),
+        "held-out": np.array([c.held_out for c in clips]),
+    }
+    print("\nsilence before each clip (s): downbeat F per lead, mean over leads; beat F mean")
+    for part, mask in parts.items():
+        if not mask.any():
+            continue
+        print(f"{part} ({int(mask.sum())} clips)\n{'':<28} {cols}    mean  beat F  unstable")
+        for label in params:
+            d, b = down[label][mask], beat[label][mask]
+            unstable = int(np.sum(d.max(axis=1) - d.min(axis=1) > 0.3))
+            per_lead = " ".join(f"{v:7.3f}" for v in d.mean(axis=0))
+            print(f"{label:<28} {per_lead} {d.mean():7.3f} {b.mean():7.3f} {unstable:>9}")
+    d = down["default"]
+    moved = [c.name for c, row in zip(clips, d, strict=True) if row.max() - row.min() > 0.3]
+    print(f"default, downbeat F apart by more than 0.3 between leads: {' '.join(moved) or '-'}")
+
+
 def run_batch(root: Path) -> None:
     """Wall time of one ``dancegraph analyze --jsonl`` process over every audio file."""
     files = sorted(str(p) for p in (root / "audio").iterdir())
@@ -372,6 +421,14 @@ def main(argv: list[str] | None = None) -> int:
         "shared non-music clips always run)",
     )
     ap.add_argument(
+        "--lead-silence",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="S",
+        help="also score the default with S seconds of silence before each clip",
+    )
+    ap.add_argument(
         "--music",
         action="append",
         default=[],
@@ -389,6 +446,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     clips = load_clips(root, args.held_out_last)
     run(clips)
+    if args.lead_silence:
+        run_lead_silence(root, clips, args.lead_silence)
     run_beat_only(root, load_beat_only(root))
     if args.batch:
         run_batch(root)

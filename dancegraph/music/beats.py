@@ -16,9 +16,9 @@ An explicit pipeline over one parameters object (:class:`BeatParams`):
    ``beat_level_corrected``), ``one_octave`` (decode again at one tempo octave,
    ``beat_level_unified``), ``halve`` (every other beat of a grid with nothing between its
    beats, ``beats_halved``), ``swing`` (``beat_swing_mended``), ``slips``
-   (``beat_slip_mended``), ``off_beat_grid`` (``beat_phase_shifted``), ``group`` (meter and bar
-   phase, :mod:`dancegraph.music.bargroup`: ``meter_regrouped``, ``downbeat_rephased``),
-   ``split`` (``beats_split``) and ``within_sound`` (beats where the music sounds). What each
+   (``beat_slip_mended``), ``off_beat_grid`` (``beat_phase_shifted``), ``within_sound`` (beats
+   where the music sounds), ``group`` (meter and bar phase, :mod:`dancegraph.music.bargroup`:
+   ``meter_regrouped``, ``downbeat_rephased``) and ``split`` (``beats_split``). What each
    does to real recordings and to generated songs, and why some are off by default:
    docs/music.md.
 4. Tempo from the beats with its metrical alternatives (:mod:`dancegraph.music.tempo`) and a
@@ -1113,6 +1113,9 @@ def _within_sound_step(grid: Grid, ev: Evidence, params: BeatParams) -> tuple[Gr
 
 #: The steps after the decoder, in the order they run; each can be switched off by name
 #: (``BeatParams.steps``). What each does to real and generated music: docs/music.md.
+#: ``within_sound`` runs before ``group``: beats the decoder counted in a leading or trailing
+#: silence are no evidence of where the bars start (with them in, a second of silence before a
+#: recording moved its downbeats: docs/music.md).
 STEPS: tuple[tuple[str, StepFn], ...] = (
     ("dotted_pulse", _dotted_pulse_step),
     ("one_octave", _one_octave_step),
@@ -1120,9 +1123,9 @@ STEPS: tuple[tuple[str, StepFn], ...] = (
     ("swing", _swing_step),
     ("slips", _slip_step),
     ("off_beat_grid", _off_beat_grid_step),
+    ("within_sound", _within_sound_step),
     ("group", _group_step),
     ("split", _split_step),
-    ("within_sound", _within_sound_step),
 )
 
 
