@@ -58,6 +58,7 @@ from dancegraph.music.beats import (  # noqa: E402
     Evidence,
     beat_evidence,
     beat_f_measure,
+    track_beats,
     track_evidence,
     warm_up,
 )
@@ -140,7 +141,7 @@ def run_beat_only(root: Path, clips: list[tuple[str, np.ndarray]]) -> None:
     for name, times in clips:
         y, sr = load_audio(root / "audio" / name)
         try:
-            bt = track_evidence(beat_evidence(y, sr, models=BeatParams().models), BeatParams())
+            bt = track_beats(y, sr)
         except AudioError as exc:
             print(f"  {name:<26} refused: {exc.code}")
             continue
@@ -168,7 +169,7 @@ def run_unannotated(folders: list[Path], music: bool) -> None:
     for path in files:
         try:
             y, sr = load_audio(path)
-            bt = track_evidence(beat_evidence(y, sr, models=BeatParams().models), BeatParams())
+            bt = track_beats(y, sr)
         except AudioError as exc:
             analysed += exc.code != "audio_too_short"
             wrong += music and exc.code == "no_beat"

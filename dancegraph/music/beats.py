@@ -1343,14 +1343,13 @@ def speech_evidence(spec: _Spectral) -> tuple[float, float]:
     chroma and the chroma ``CHROMA_LAG_S`` later (a voice glides from syllable to syllable;
     notes and chords are held). Both in [0, 1]; 0 and 0 for audio too short to compare. Why:
     BeatNet's pulse alone can read a speaker's syllables as a faint beat."""
+    from scipy.ndimage import uniform_filter1d
+
     level = spec.level.astype(np.float64)
-    n = len(level)
     lag = int(round(CHROMA_LAG_S * FPS))
-    if n <= lag:
+    if len(level) <= lag:
         return 0.0, 0.0
-    width = max(1, int(round(PAUSE_CONTEXT_S * FPS)))
-    kernel = np.ones(width) / width
-    about = np.convolve(np.pad(level, width // 2, mode="edge"), kernel, mode="valid")[:n]
+    about = uniform_filter1d(level, max(1, int(round(PAUSE_CONTEXT_S * FPS))), mode="nearest")
     pauses = float(np.mean(level < PAUSE_RATIO * about))
     a = spec.chroma[:, :-lag].astype(np.float64)
     b = spec.chroma[:, lag:].astype(np.float64)
