@@ -3,7 +3,8 @@ for the default analysis and for each step of the beat pipeline switched off (or
 off by default, on).
 
 Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]
-[--non-music DIR] [--music DIR] [--lead-silence S ...]``; the annotated folder comes from
+[--non-music DIR] [--music DIR] [--lead-silence S ...] [--excerpt-start S ...]
+[--reference DIR]``; the annotated folder comes from
 ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and its part skips (exit 0) when neither names one.
 The recordings are copyrighted: they live outside the repository, are never committed, and
 only the numbers go to docs/music.md.
@@ -30,8 +31,11 @@ chosen on the rest and are reported on both. ``--batch`` also times ``dancegraph
 recordings that are not music (the shared non-music clips, and each ``--non-music DIR``) run
 first: each should be refused, and the count given beats is printed; then each ``--music
 DIR`` of music without annotations, where each should get beats (false ``no_beat`` counted).
-``--lead-silence S ...`` scores the default again with S seconds of silence before each clip
-(a consistency check: the same music starting later must get the same bars).
+``--lead-silence S ...`` scores the default again with S seconds of silence before each clip,
+``--excerpt-start S ...`` with each clip's first S seconds cut off (consistency checks: the same
+music starting later, or an excerpt of it, must get the same bars). ``--reference DIR`` scores
+another tracker's output (``DIR/<clip>.beats``, ``time beat-in-bar``, e.g. a public
+implementation run outside the project) as a row beside the default, with the same metrics.
 """
 
 from __future__ import annotations
@@ -230,15 +234,38 @@ def score(clip: Clip, params: BeatParams) -> dict:
             raise ev
         bt = track_evidence(ev, params)
     except AudioError:
-        return {
-            "beat_f": 0.0,
-            "down_f": 0.0,
-            "down_f_level": 0.0,
-            "meter": False,
-            "octave": "none",
-            "no_beat": True,
-        }
-    ratio = bt.tempo_bpm / clip.tempo_bpm
+        return REFUSED
+    return metrics(clip, bt.beats, bt.beat_positions, bt.meter, bt.tempo_bpm)
+
+
+REFUSED = {
+    "beat_f": 0.0,
+    "down_f": 0.0,
+    "down_f_level": 0.0,
+    "meter": False,
+    "octave": "none",
+    "no_beat": True,
+}
+
+
+def read_reference(folder: Path, clip: Clip) -> dict:
+    """The metrics of another tracker's output for ``clip``: ``folder/<clip name>.beats``
+    (``time beat-in-bar``, as the annotations); a missing or empty file scores as refused."""
+    path = folder / f"{clip.name}.beats"
+    read = read_beats(path) if path.is_file() else None
+    if read is None or len(read[0]) < 2:
+        return REFUSED
+    times, pos = read
+    return metrics(clip, times, pos, int(pos.max()), 60.0 / float(np.median(np.diff(times))))
+
+
+def metrics(
+    clip: Clip, beats: np.ndarray, positions: np.ndarray, meter: int, tempo_bpm: float
+) -> dict:
+    """Beat F, downbeat F (at the annotators' level and at the level counted), meter, tempo
+    level and the chance scores of tracked ``beats`` (K,) s with their ``positions`` (K,)."""
+    downbeats = beats[positions == 1]
+    ratio = tempo_bpm / clip.tempo_bpm
     level = next(
         (
             name
@@ -247,26 +274,26 @@ def score(clip: Clip, params: BeatParams) -> dict:
         ),
         "other",
     )
-    meter_ok = bt.meter == clip.meter or (clip.meter == 2 and bt.meter == 4)
-    down_f = beat_f_measure(clip.downbeats, bt.downbeats)
+    meter_ok = meter == clip.meter or (clip.meter == 2 and meter == 4)
+    down_f = beat_f_measure(clip.downbeats, downbeats)
     # at the level the analysis counts: where the annotators count twice (half) the tracked
     # tempo, their bars are half (twice) the tracked ones: every other downbeat, either phase
     if level == "x1/2":
-        level_f = max(beat_f_measure(clip.downbeats[k::2], bt.downbeats) for k in (0, 1))
+        level_f = max(beat_f_measure(clip.downbeats[k::2], downbeats) for k in (0, 1))
     elif level == "x2":
-        level_f = max(beat_f_measure(clip.downbeats, bt.downbeats[k::2]) for k in (0, 1))
+        level_f = max(beat_f_measure(clip.downbeats, downbeats[k::2]) for k in (0, 1))
     else:
         level_f = down_f
-    half = np.r_[np.diff(bt.beats), np.median(np.diff(bt.beats))] / 2 if len(bt.beats) > 1 else 0
-    rotated = bt.beats[np.roll(bt.beat_positions, 1) == 1]
+    half = np.r_[np.diff(beats), np.median(np.diff(beats))] / 2 if len(beats) > 1 else 0
+    rotated = beats[np.roll(positions, 1) == 1]
     return {
-        "beat_f": beat_f_measure(clip.beats, bt.beats),
+        "beat_f": beat_f_measure(clip.beats, beats),
         "down_f": down_f,
         "down_f_level": level_f,
         "meter": meter_ok,
         "octave": level,
         "no_beat": False,
-        "chance_beat_f": beat_f_measure(clip.beats, bt.beats + half),
+        "chance_beat_f": beat_f_measure(clip.beats, beats + half),
         "chance_down_f": beat_f_measure(clip.downbeats, rotated),
     }
 
@@ -299,13 +326,16 @@ def variants() -> dict[str, BeatParams]:
     return out
 
 
-def run(clips: list[Clip]) -> None:
+def run(clips: list[Clip], references: list[Path]) -> None:
+    """The tables: every variant and each reference folder's tracker, per part and genre."""
     groups = {
         "all": clips,
         "dev": [c for c in clips if not c.held_out],
         "held-out": [c for c in clips if c.held_out],
     }
     results = {label: [score(c, p) for c in clips] for label, p in variants().items()}
+    for folder in references:
+        results[f"reference: {folder.name}"] = [read_reference(folder, c) for c in clips]
     by_name = {c.name: i for i, c in enumerate(clips)}
     for group, members in groups.items():
         if not members:
@@ -342,51 +372,68 @@ def run(clips: list[Clip]) -> None:
     )
 
 
-def run_lead_silence(root: Path, clips: list[Clip], leads: list[float]) -> None:
-    """Downbeat F and beat F of the default analysis and of the decoder alone with ``leads``
-    seconds of silence put before each clip (its annotation moved with it), beside the clip as
-    it is: a recording that starts a little later must get the same bars. Prints, per part
-    (all, dev, held-out), the mean per lead, the mean over all leads, and the clips whose
-    downbeat F differs by more than 0.3 between leads."""
+def moved_clip(clip: Clip, y: np.ndarray, sr: int, kind: str, seconds: float) -> Clip:
+    """``clip`` with ``seconds`` of silence put before it (``kind`` 'lead') or its first
+    ``seconds`` cut off (``kind`` 'start'): the evidence recomputed, the annotation moved (and,
+    for 'start', the beats before the cut dropped)."""
     import dataclasses
 
+    n = int(round(seconds * sr))
+    if kind == "lead":
+        audio, shift = np.concatenate([np.zeros(n, dtype=y.dtype), y]), n / sr
+    else:
+        audio, shift = y[n:], -n / sr
+    try:
+        ev: Evidence | AudioError = beat_evidence(audio, sr)
+    except AudioError as exc:
+        ev = exc
+    keep = clip.beats + shift >= 0
+    return dataclasses.replace(
+        clip, beats=clip.beats[keep] + shift, positions=clip.positions[keep], evidence=ev
+    )
+
+
+def run_moved(root: Path, clips: list[Clip], kind: str, amounts: list[float]) -> None:
+    """Consistency without labels of its own: downbeat F (at the annotators' and at the counted
+    level) and beat F of the default analysis and of the decoder alone with each of ``amounts``
+    seconds of silence put before each clip (``kind`` 'lead') or cut from its start (``kind``
+    'start'), beside the clip as it is. A recording that starts a little later, or an excerpt of
+    it, must get the same bars. Prints, per part (all, dev, held-out), the mean per amount, the
+    mean over all, and the clips whose downbeat F differs by more than 0.3 between amounts."""
     params = {"default": BeatParams(), "decoder alone (no step)": BeatParams(steps=frozenset())}
-    down: dict[str, np.ndarray] = {k: np.zeros((len(clips), len(leads) + 1)) for k in params}
-    beat: dict[str, np.ndarray] = {k: np.zeros((len(clips), len(leads) + 1)) for k in params}
+    shape = (len(clips), len(amounts) + 1)
+    down = {k: np.zeros(shape) for k in params}
+    level = {k: np.zeros(shape) for k in params}
+    beat = {k: np.zeros(shape) for k in params}
     for i, clip in enumerate(clips):
         y, sr = load_audio(next((root / "audio").glob(f"{clip.name}.*")))
-        for j, lead in enumerate([0.0, *leads]):
-            shifted = clip
-            if lead:
-                padded = np.concatenate([np.zeros(int(round(lead * sr)), dtype=y.dtype), y])
-                try:
-                    ev: Evidence | AudioError = beat_evidence(padded, sr)
-                except AudioError as exc:
-                    ev = exc
-                lead_s = int(round(lead * sr)) / sr
-                shifted = dataclasses.replace(clip, beats=clip.beats + lead_s, evidence=ev)
+        for j, amount in enumerate([0.0, *amounts]):
+            moved = moved_clip(clip, y, sr, kind, amount) if amount else clip
             for label, p in params.items():
-                r = score(shifted, p)
+                r = score(moved, p)
                 down[label][i, j], beat[label][i, j] = r["down_f"], r["beat_f"]
-    cols = " ".join(f"{lead:>7.2f}" for lead in [0.0, *leads])
+                level[label][i, j] = r["down_f_level"]
+    cols = " ".join(f"{a:>7.2f}" for a in [0.0, *amounts])
     parts = {
         "all": np.ones(len(clips), dtype=bool),
         "dev": np.array([not c.held_out for c in clips]),
         "held-out": np.array([c.held_out for c in clips]),
     }
-    print("\nsilence before each clip (s): downbeat F per lead, mean over leads; beat F mean")
+    what = "silence before each clip" if kind == "lead" else "each clip cut from"
+    print(f"\n{what} (s): downbeat F per amount, mean over all; at its level; beat F")
     for part, mask in parts.items():
         if not mask.any():
             continue
-        print(f"{part} ({int(mask.sum())} clips)\n{'':<28} {cols}    mean  beat F  unstable")
+        print(f"{part} ({int(mask.sum())} clips)\n{'':<28} {cols}    mean  level  beat F  unstable")
         for label in params:
             d, b = down[label][mask], beat[label][mask]
             unstable = int(np.sum(d.max(axis=1) - d.min(axis=1) > 0.3))
-            per_lead = " ".join(f"{v:7.3f}" for v in d.mean(axis=0))
-            print(f"{label:<28} {per_lead} {d.mean():7.3f} {b.mean():7.3f} {unstable:>9}")
+            per = " ".join(f"{v:7.3f}" for v in d.mean(axis=0))
+            lv = level[label][mask].mean()
+            print(f"{label:<28} {per} {d.mean():7.3f} {lv:6.3f} {b.mean():7.3f} {unstable:>9}")
     d = down["default"]
-    moved = [c.name for c, row in zip(clips, d, strict=True) if row.max() - row.min() > 0.3]
-    print(f"default, downbeat F apart by more than 0.3 between leads: {' '.join(moved) or '-'}")
+    apart = [c.name for c, row in zip(clips, d, strict=True) if row.max() - row.min() > 0.3]
+    print(f"default, downbeat F apart by more than 0.3: {' '.join(apart) or '-'}")
 
 
 def run_batch(root: Path) -> None:
@@ -430,6 +477,22 @@ def main(argv: list[str] | None = None) -> int:
         help="also score the default with S seconds of silence before each clip",
     )
     ap.add_argument(
+        "--excerpt-start",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="S",
+        help="also score the default on each clip with its first S seconds cut off",
+    )
+    ap.add_argument(
+        "--reference",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder of another tracker's output, DIR/<clip>.beats (time beat-in-bar), "
+        "scored as a row beside the default (repeatable)",
+    )
+    ap.add_argument(
         "--music",
         action="append",
         default=[],
@@ -446,9 +509,11 @@ def main(argv: list[str] | None = None) -> int:
         print("real-music benchmark skipped: no folder (--root or $DANCEGRAPH_REAL_MUSIC)")
         return 0
     clips = load_clips(root, args.held_out_last)
-    run(clips)
+    run(clips, [Path(d) for d in args.reference])
     if args.lead_silence:
-        run_lead_silence(root, clips, args.lead_silence)
+        run_moved(root, clips, "lead", args.lead_silence)
+    if args.excerpt_start:
+        run_moved(root, clips, "start", args.excerpt_start)
     run_beat_only(root, load_beat_only(root))
     if args.batch:
         run_batch(root)
