@@ -468,22 +468,18 @@ def main(argv: list[str] | None = None) -> int:
         help="a folder of recordings that are not music, all to be refused (repeatable; the "
         "shared non-music clips always run)",
     )
-    ap.add_argument(
-        "--lead-silence",
-        type=float,
-        nargs="+",
-        default=[],
-        metavar="S",
-        help="also score the default with S seconds of silence before each clip",
-    )
-    ap.add_argument(
-        "--excerpt-start",
-        type=float,
-        nargs="+",
-        default=[],
-        metavar="S",
-        help="also score the default on each clip with its first S seconds cut off",
-    )
+    for flag, what in (
+        ("--lead-silence", "with S seconds of silence before each clip"),
+        ("--excerpt-start", "on each clip with its first S seconds cut off"),
+    ):
+        ap.add_argument(
+            flag,
+            type=float,
+            nargs="+",
+            default=[],
+            metavar="S",
+            help=f"also score the default {what}",
+        )
     ap.add_argument(
         "--reference",
         action="append",
