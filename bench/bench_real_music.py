@@ -46,7 +46,7 @@ import re
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -326,22 +326,22 @@ def variants() -> dict[str, BeatParams]:
     return out
 
 
+def parts(clips: list[Clip]) -> dict[str, np.ndarray]:
+    """(len(clips),) bool masks of the parts reported apart: all, dev and held-out."""
+    held_out = np.array([c.held_out for c in clips], dtype=bool)
+    return {"all": np.ones(len(clips), dtype=bool), "dev": ~held_out, "held-out": held_out}
+
+
 def run(clips: list[Clip], references: list[Path]) -> None:
     """The tables: every variant and each reference folder's tracker, per part and genre."""
-    groups = {
-        "all": clips,
-        "dev": [c for c in clips if not c.held_out],
-        "held-out": [c for c in clips if c.held_out],
-    }
     results = {label: [score(c, p) for c in clips] for label, p in variants().items()}
     for folder in references:
         results[f"reference: {folder.name}"] = [read_reference(folder, c) for c in clips]
-    by_name = {c.name: i for i, c in enumerate(clips)}
-    for group, members in groups.items():
-        if not members:
+    for group, mask in parts(clips).items():
+        if not mask.any():
             continue
-        idx = [by_name[c.name] for c in members]
-        print(f"\n{group} ({len(members)} clips)\n{HEADER}")
+        idx = np.flatnonzero(mask)
+        print(f"\n{group} ({len(idx)} clips)\n{HEADER}")
         for label, rows in results.items():
             print(f"{label:<28} {_summary([rows[i] for i in idx])}")
         base = [results["default"][i] for i in idx]
@@ -376,8 +376,6 @@ def moved_clip(clip: Clip, y: np.ndarray, sr: int, kind: str, seconds: float) ->
     """``clip`` with ``seconds`` of silence put before it (``kind`` 'lead') or its first
     ``seconds`` cut off (``kind`` 'start'): the evidence recomputed, the annotation moved (and,
     for 'start', the beats before the cut dropped)."""
-    import dataclasses
-
     n = int(round(seconds * sr))
     if kind == "lead":
         audio, shift = np.concatenate([np.zeros(n, dtype=y.dtype), y]), n / sr
@@ -388,7 +386,7 @@ def moved_clip(clip: Clip, y: np.ndarray, sr: int, kind: str, seconds: float) ->
     except AudioError as exc:
         ev = exc
     keep = clip.beats + shift >= 0
-    return dataclasses.replace(
+    return replace(
         clip, beats=clip.beats[keep] + shift, positions=clip.positions[keep], evidence=ev
     )
 
@@ -414,14 +412,9 @@ def run_moved(root: Path, clips: list[Clip], kind: str, amounts: list[float]) ->
                 down[label][i, j], beat[label][i, j] = r["down_f"], r["beat_f"]
                 level[label][i, j] = r["down_f_level"]
     cols = " ".join(f"{a:>7.2f}" for a in [0.0, *amounts])
-    parts = {
-        "all": np.ones(len(clips), dtype=bool),
-        "dev": np.array([not c.held_out for c in clips]),
-        "held-out": np.array([c.held_out for c in clips]),
-    }
     what = "silence before each clip" if kind == "lead" else "each clip cut from"
     print(f"\n{what} (s): downbeat F per amount, mean over all; at its level; beat F")
-    for part, mask in parts.items():
+    for part, mask in parts(clips).items():
         if not mask.any():
             continue
         print(f"{part} ({int(mask.sum())} clips)\n{'':<28} {cols}    mean  level  beat F  unstable")
