@@ -115,6 +115,33 @@ STEP_BODY_JOINTS = tuple(
 )
 STEP_FOOT_JOINTS = ("left_ankle", "left_toe", "right_ankle", "right_toe")
 
+
+def step_evidence(
+    skeleton: Skeleton,
+    positions: np.ndarray,
+    world: np.ndarray,
+    fps: float,
+    main_joints: tuple[str, ...] = MAIN_JOINTS,
+    kinematic_beats_fn: Callable[[np.ndarray, float], np.ndarray] = kinematic_beats,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The importer's evidence of a take's beat: its kinematic beats ``(K,)`` s (of the
+    ``main_joints``) and ``tempo.step_signals`` ``(F, 5)`` (None under 2 s), from world
+    ``positions (F, J, 3)`` and rotations ``world (F, J, 4)`` at ``fps``. One function for the
+    import and for a rendered dance read back as a take (``metrics.naturalness``)."""
+    main = canonical_positions(skeleton, positions, world, main_joints)
+    kb = np.asarray(kinematic_beats_fn(main, fps), dtype=float)
+    if positions.shape[0] < 2.0 * fps:
+        return kb, None
+    index = {k: i for i, k in enumerate(main_joints)}
+    signals = tempo_mod.step_signals(
+        main[:, [index[k] for k in STEP_BODY_JOINTS]],
+        main[:, [index[k] for k in STEP_FOOT_JOINTS]],
+        kb,
+        fps,
+    )
+    return kb, signals
+
+
 ProgressFn = Callable[[int, int, str], None]
 #: dataset.json keys the version hash covers (with the clip arrays).
 _CONTENT_KEYS = (
@@ -865,8 +892,9 @@ def _import_clip(
     duration = n / fps
     positions, world = forward_kinematics(motion)
     root, feet, hands = _motion_joints(motion.skeleton, pname)
-    main = canonical_positions(motion.skeleton, positions, world, main_joints)
-    kb = np.asarray(kinematic_beats_fn(main, fps), dtype=float)
+    kb, signals = step_evidence(
+        motion.skeleton, positions, world, fps, main_joints, kinematic_beats_fn
+    )
 
     flags = list(dict.fromkeys([*m.flags, *cm.flags]))
     style = cm.style or m.style or "unknown"
@@ -887,15 +915,7 @@ def _import_clip(
 
     # The grid's evidence and the frame-rate check whenever the clip is long enough: the
     # motion tempo is what lets a user see a wrong frame rate, whatever the bars are cut from.
-    signals = None
-    if duration >= 2.0:
-        index = {k: i for i, k in enumerate(main_joints)}
-        signals = tempo_mod.step_signals(
-            main[:, [index[k] for k in STEP_BODY_JOINTS]],
-            main[:, [index[k] for k in STEP_FOOT_JOINTS]],
-            kb,
-            fps,
-        )
+    if signals is not None:
         motion_tempo = tempo_mod.motion_tempo_bpm(
             tempo_mod.periodicity_signals(positions, fps, root=root, feet=feet, hands=hands), fps
         )
