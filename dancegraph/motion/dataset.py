@@ -1,8 +1,10 @@
 """Dataset import: a folder of motion files (+ an optional manifest) → a normalised dataset of bars.
 
-``import_dataset`` reads every BVH file of a folder, estimates or reads each clip's beat and bar
-grid, cuts 4-beat bars, labels each bar's rhythm signature from its kinematic beats, and stores
-the result in the object store:
+``import_dataset`` reads every take of a folder (BVH, or animated GLB/glTF), puts takes on other
+skeletons onto the library's skeleton with the retargeter, estimates or reads each take's beat
+and bar grid (from the music the take was danced to where the manifest names it, else from the
+motion), cuts 4-beat bars, labels each bar's rhythm signature from its kinematic beats, and
+stores the result in the object store:
 
 - ``datasets/<name>/dataset.json``: name, version (content hash), licence, the skeleton, the
   clips (``ClipInfo``), the bars (``BarInfo``) and the import report;
@@ -14,8 +16,17 @@ where ``data_prefix`` (``datasets/<name>/data-<stamp>``, named in dataset.json) 
 every import, so a reader never mixes two imports' files. The version is a hash of the content
 (records and clip arrays), the same for the same input.
 
-A file that cannot be imported is listed in the report with its error code and message; the
-other clips are still imported. ``load_dataset`` reads a stored dataset back.
+A take that cannot be imported is listed in the report (``failed``: file, code, message) and
+the other takes are published (``import_dataset(..., strict=True)`` publishes nothing unless
+every take passed, and raises ``dataset_takes_failed`` listing each take's code). Either way no
+reader sees a half-written dataset: clip data goes to a fresh folder that ``dataset.json`` names,
+written last. Failure codes per take: the reader's (``bvh_syntax``, ``bvh_truncated``, ...,
+``gltf_invalid``, ``take_no_animation``), ``take_format_unsupported`` (FBX animation is not
+read yet), ``take_under_one_bar``, ``fps_mixed`` (a frame rate other than the library's
+without a declared ``fps``), ``skeleton_unmapped`` (no humanoid roles by name or structure and
+no ``roles`` map), ``manifest_file_missing`` (a manifest entry naming an absent take or audio
+file), ``audio_undecodable`` (and the other ``audio_*`` codes of the decoder),
+``duplicate_clip_id``, ``manifest_invalid``. ``load_dataset`` reads a stored dataset back.
 
 Manifest (YAML or JSON; ``manifest.yaml``/``.yml``/``.json`` in the folder is used when none is
 given). Every key is optional; unknown keys are an error (``manifest_invalid``) so that typos
@@ -25,7 +36,16 @@ do not pass silently::
     licence: "..."                   # stored with the dataset
     acknowledgement: "..."
     source: "http://mocap.cs.cmu.edu"
-    files: "*.bvh"                   # glob inside the folder (default *.bvh)
+    files: "*.bvh"                   # glob inside the folder (default: every .bvh, .glb,
+                                     # .gltf and .fbx file)
+    skeleton: "60_01"                # the library's skeleton: one of its takes (clip id) or a
+                                     # rig file in the folder (FBX, GLB, BVH; not a take);
+                                     # default the first take's. Takes on other skeletons are
+                                     # retargeted onto it (dancegraph.motion.retarget)
+    roles: {hips: pelvis_jnt, ...}   # role -> joint name, for skeletons whose names and shape
+                                     # do not tell the humanoid roles (used for every skeleton
+                                     # that has all these joints)
+    audio_offset_s: 0.0              # default of the clips' audio_offset_s
     strip_suffix: "_scaled"          # clip id = file stem without this suffix
     fps: 60                          # override the files' header frame rate ...
     fps_reason: "..."                # ... and say why (kept in the dataset)
@@ -56,16 +76,22 @@ do not pass silently::
         downbeats: [0.12, 1.55, ...] # bar starts among the beats (default: the first beat)
         bars: [[0.12, 0.48, 0.83, 1.19, 1.55], ...]  # or explicit 4-beat bars (+ next downbeat)
         signatures: ["00010101", ...]  # one per bar: override the kinematic labels
-        audio: 60_01.ogg             # paired audio, relative to the folder
+        audio: 60_01.ogg             # the music the take was danced to, relative to the
+                                     # folder: the take's grid comes from the music tracker
+        audio_offset_s: 1.25         # the audio's time (s) at the take's first frame
+        roles: {hips: pelvis_jnt}    # this take's role map (overrides the library's)
         exclude: true                # not imported (listed in the report)
         reason: "..."                # why excluded / flagged
         flags: [walk]                # extra flags for this clip
 
-Beat sources, in order of precedence: ``annotation`` (beats/bars in the manifest),
-``manifest_tempo`` (a fixed tempo, e.g. for takes without a steady beat; its phase and
-downbeat from the motion unless ``first_downbeat_s`` is given), ``kinematic`` (the grid of
+Beat sources, in order of precedence: ``annotation`` (beats/bars in the manifest), ``music``
+(``dancegraph.music.analysis.analyze`` of the take's audio, counted at the manifest's
+``style_tempo_bpm`` where given, moved by ``audio_offset_s`` onto the take's clock; the motion
+estimate is kept as a check: ``ClipInfo.grid_check``), ``manifest_tempo`` (a fixed tempo, e.g.
+for takes without a steady beat; its phase and downbeat from the motion unless
+``first_downbeat_s`` is given), ``kinematic`` (the grid of
 ``dancegraph.motion.tempo.estimate_grid``: tempo per section, sub-frame beats). Each take is
-gridded from its own motion only, so a take imported alone gets the same grid.
+gridded from its own motion (or music) only, so a take imported alone gets the same grid.
 
 Stored format 2 (format 1 had whole-frame kinematic grids and no sections): a store written
 by an older version fails to load with ``dataset_format_old``; import it again.
@@ -96,7 +122,16 @@ from dancegraph.motion import tempo as tempo_mod
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.features import MAIN_JOINTS, kinematic_beats
 from dancegraph.motion.fk import canonical_positions, forward_kinematics
-from dancegraph.motion.skeleton import Motion, Skeleton
+from dancegraph.motion.rig import (
+    REQUIRED_ROLES,
+    Rig,
+    RigError,
+    RoleMap,
+    build_rig,
+    check_mapping,
+    map_roles,
+)
+from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
 from dancegraph.rhythm import signatures as sig
 from dancegraph.store import ObjectStore
 
@@ -171,6 +206,16 @@ def _check_range(v: list[float] | None) -> list[float] | None:
     return v
 
 
+def _check_roles(v: dict[str, str] | None) -> dict[str, str] | None:
+    """A role map (role → joint name) with known roles only (``rig.check_mapping``)."""
+    if v is not None:
+        try:
+            check_mapping(v)
+        except RigError as exc:
+            raise ValueError(exc.message) from None
+    return v
+
+
 class ClipManifest(_Strict):
     """Per-clip manifest entry (see the module docstring)."""
 
@@ -186,11 +231,14 @@ class ClipManifest(_Strict):
     bars: list[list[float]] | None = None
     signatures: list[str] | None = None
     audio: str | None = None
+    audio_offset_s: float | None = Field(default=None, ge=-3600, le=3600)
+    roles: dict[str, str] | None = None
     exclude: bool = False
     reason: str | None = None
     flags: list[str] = Field(default_factory=list)
 
     _range = field_validator("tempo_prior_bpm")(_check_range)
+    _roles = field_validator("roles")(_check_roles)
 
     @field_validator("bars")
     @classmethod
@@ -223,7 +271,10 @@ class Manifest(_Strict):
     acknowledgement: str | None = None
     source: str | None = None
     description: str | None = None
-    files: str = "*.bvh"
+    files: str | None = None
+    skeleton: str | None = None
+    roles: dict[str, str] | None = None
+    audio_offset_s: float = Field(default=0.0, ge=-3600, le=3600)
     strip_suffix: str | None = None
     fps: float | None = Field(default=None, gt=0, le=10000)
     fps_reason: str | None = None
@@ -239,6 +290,7 @@ class Manifest(_Strict):
     clips: dict[str, ClipManifest] = Field(default_factory=dict)
 
     _range = field_validator("tempo_prior_bpm", "style_tempo_bpm")(_check_range)
+    _roles = field_validator("roles")(_check_roles)
 
     @field_validator("partners")
     @classmethod
@@ -304,7 +356,13 @@ class ClipInfo:
     ``sections``: the stretches of steady tempo of a grid read from the motion
     (``tempo.Section.to_dict``: start_s, end_s, tempo_bpm, confidence, downbeat_clarity),
     empty for annotated and fixed grids. ``header_fps`` is the file's own rate, ``fps`` the
-    one used.
+    one used. ``source_format``: bvh | glb; ``source_joints``: the take's own skeleton's
+    joints; ``retarget``: empty for a take on the library's skeleton, else the retargeter's
+    checks (``from_joints``, ``foot_sliding_m_s``, ``direction_error_deg``, ``cpu_seconds``).
+    ``audio_offset_s``: the audio's time at the take's first frame (music takes);
+    ``grid_check``: for a grid from music, how the motion's own estimate agrees with it
+    (``tempo.partner_agreement``'s numbers, ``motion_tempo_bpm`` and ``agree``); empty
+    otherwise.
     """
 
     id: str
@@ -324,6 +382,11 @@ class ClipInfo:
     grid_fit: float = 0.0
     sections: list[dict] = field(default_factory=list)
     audio: str | None = None
+    source_format: str = "bvh"
+    source_joints: int = 0
+    retarget: dict = field(default_factory=dict)
+    audio_offset_s: float | None = None
+    grid_check: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -414,6 +477,11 @@ class ImportReport:
                     "bars": c.n_bars,
                     "style": c.style,
                     "flags": c.flags,
+                    "source_format": c.source_format,
+                    "source_joints": c.source_joints,
+                    "retarget": c.retarget,
+                    "audio_offset_s": c.audio_offset_s,
+                    "grid_check": c.grid_check,
                 }
                 for c in self.clips
             ],
@@ -454,9 +522,22 @@ class ImportReport:
                 f" {_fmt(100 * p['downbeat_agreement'], 0)} % (else {p['downbeat_shift_beats']}"
                 f" beats apart): {'agree' if p['agree'] else 'DISAGREE'}"
             )
+        lines.extend(check_line(c) for c in self.clips if c.grid_check)
         for w in self.warnings:
             lines.append(f"WARNING {w}")
         return "\n".join(lines)
+
+
+def check_line(c: ClipInfo) -> str:
+    """One line: how a music take's grid and its motion's own estimate agree."""
+    g = c.grid_check
+    return (
+        f"music/motion {c.id}: tempo {_fmt(g['music_tempo_bpm'])}/{_fmt(g['motion_tempo_bpm'])} BPM"
+        f" ({_fmt(g['tempo_diff_pct'], 2)} %), median beat offset"
+        f" {_fmt(g['median_offset_ms'], 0)} ms, downbeats agree"
+        f" {_fmt(100 * g['downbeat_agreement'] if g['downbeat_agreement'] is not None else None, 0)} %"
+        f" (else {g['downbeat_shift_beats']} beats apart): {'agree' if g['agree'] else 'DISAGREE'}"
+    )
 
 
 #: Partner takes agree when their tempi are this close (%) ...
@@ -652,11 +733,12 @@ def _fps_warning(rows: list[ClipInfo], prior: tuple[float, float] | None) -> str
     )
 
 
-def _find_files(src: Path, pattern: str) -> list[Path]:
-    """Files matching ``pattern`` inside ``src`` (a pattern cannot reach outside it)."""
+def _find_files(src: Path, pattern: str | None) -> list[Path]:
+    """Files matching ``pattern`` inside ``src`` (a pattern cannot reach outside it); without
+    a pattern every file with a take suffix (``TAKE_SUFFIXES``)."""
     root = _norm(src)
     try:
-        found = list(src.glob(pattern))
+        found = list(src.glob(pattern or "*"))
     except (ValueError, NotImplementedError) as exc:
         raise DanceGraphError(
             f"manifest 'files': bad pattern {pattern!r} ({exc})",
@@ -666,7 +748,10 @@ def _find_files(src: Path, pattern: str) -> list[Path]:
     return sorted(
         p
         for p in found
-        if p.is_file() and not p.name.startswith(".") and _norm(p).is_relative_to(root)
+        if p.is_file()
+        and not p.name.startswith(".")
+        and _norm(p).is_relative_to(root)
+        and (pattern or p.suffix.lower() in TAKE_SUFFIXES)
     )
 
 
@@ -694,20 +779,160 @@ def _npz_bytes(**arrays: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def _inside(src: Path, rel: str, field_name: str) -> Path:
+    """``src / rel``, refused (``manifest_invalid``) when it lies outside ``src``."""
+    path = _norm(src / rel)
+    if not path.is_relative_to(_norm(src)):
+        raise DanceGraphError(
+            f"{rel!r} lies outside the import folder", code="manifest_invalid", field=field_name
+        )
+    return path
+
+
+def _audio_path(src: Path, cm: ClipManifest, cid: str) -> Path | None:
+    """The take's music file, or None; ``manifest_file_missing`` when the manifest names an
+    absent one."""
+    if not cm.audio:
+        return None
+    path = _inside(src, cm.audio, f"clips.{cid}.audio")
+    if not path.is_file():
+        raise DanceGraphError(
+            f"the manifest names the audio {cm.audio!r}, which is not in the upload",
+            code="manifest_file_missing",
+            field=f"clips.{cid}.audio",
+        )
+    return path
+
+
+def _library_source(src: Path, m: Manifest, files: list[Path]) -> tuple[_Library, list[Path]]:
+    """The library's skeleton source (``skeleton``: a rig file in the folder, or a take) and the
+    takes in import order (the skeleton's take first, the rig file left out). Raises
+    ``manifest_file_missing`` (naming neither), ``skeleton_source_invalid`` (unreadable rig)."""
+    from dancegraph.motion.rig import load_rig
+
+    if not m.skeleton:
+        return _Library(), files
+    path = _inside(src, m.skeleton, "skeleton")
+    if path.is_file():
+        try:
+            rig = load_rig(path, mapping=m.roles)
+        except RigError as exc:
+            raise DanceGraphError(
+                f"skeleton {m.skeleton!r}: {exc.message}",
+                code="skeleton_source_invalid",
+                field="skeleton",
+            ) from None
+        rest = [f for f in files if _norm(f) != path]
+        return _Library(rig.skeleton, rig.roles, rig, f"rig:{path.name}"), rest
+    first = [f for f in files if m.skeleton in (f.name, f.stem, _clip_id(f.stem, m.strip_suffix))]
+    if not first:
+        raise DanceGraphError(
+            f"skeleton {m.skeleton!r} is neither a rig file nor a take of the upload",
+            code="manifest_file_missing",
+            field="skeleton",
+        )
+    return _Library(), first[:1] + [f for f in files if f != first[0]]
+
+
+def _absent_files(src: Path, m: Manifest) -> list[dict]:
+    """Failure rows of manifest clip entries whose ``file`` is not in the folder."""
+    return [
+        {
+            "file": cm.file,
+            "id": key,
+            "code": "manifest_file_missing",
+            "error": f"the manifest names the take {cm.file!r}, which is not in the upload",
+        }
+        for key, cm in m.clips.items()
+        if cm.file and not cm.exclude and not _inside(src, cm.file, f"clips.{key}.file").is_file()
+    ]
+
+
+@dataclass
+class _Takes:
+    """What the import has gathered so far (per-take rows, bars, failures, ...)."""
+
+    rows: list[ClipInfo] = field(default_factory=list)
+    bars: list[BarInfo] = field(default_factory=list)
+    failed: list[dict] = field(default_factory=list)
+    excluded: list[dict] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    digests: list[str] = field(default_factory=list)
+    grids: dict[str, tuple] = field(default_factory=dict)
+
+
+def _import_take(
+    src: Path,
+    path: Path,
+    m: Manifest,
+    lib: _Library,
+    store: ObjectStore,
+    data_prefix: str,
+    got: _Takes,
+) -> None:
+    """Import one take into ``got`` (its data under ``data_prefix``), or record its failure."""
+    cid = _clip_id(path.stem, m.strip_suffix)
+    cm = _clip_manifest(m, cid, path)
+    try:
+        if cm.exclude:
+            got.excluded.append({"file": path.name, "id": cid, "reason": cm.reason})
+            return
+        if any(r.id == cid for r in got.rows):
+            raise DanceGraphError(
+                f"clip id {cid!r} is already used by another file", code="duplicate_clip_id"
+            )
+        audio = _audio_path(src, cm, cid)
+        row, clip_bars, arrays = _import_clip(
+            path, cid, cm, m, lib, audio, MAIN_JOINTS, kinematic_beats
+        )
+        if audio is not None:
+            row.audio = f"{data_prefix}/audio/{cid}{audio.suffix.lower()}"
+            store.put_file(row.audio, audio)
+        data = _npz_bytes(**arrays)
+        store.put_bytes(f"{data_prefix}/clips/{cid}.npz", data)
+        got.digests.append(cid + hashlib.sha256(data).hexdigest())
+        got.rows.append(row)
+        got.bars.extend(clip_bars)
+        starts = np.array([b.start_s for b in clip_bars])
+        got.grids[cid] = (arrays["beats"], starts, row.tempo_bpm)
+    except DanceGraphError as exc:
+        got.failed.append({"file": path.name, "code": exc.code, "error": _local(exc.message, src)})
+    except (ValueError, OSError, MemoryError) as exc:
+        got.failed.append(
+            {"file": path.name, "code": "motion_file_invalid", "error": _local(str(exc), src)}
+        )
+
+
+def _data_prefix(prefix: str) -> str:
+    """A fresh folder for one import's clip data: microsecond stamps sort by time, so cleanup
+    can tell earlier imports from later ones."""
+    now_ns = time.time_ns()
+    stamp = (
+        time.strftime("%Y%m%dT%H%M%S", time.gmtime(now_ns // 10**9))
+        + f"{now_ns // 1000 % 10**6:06d}"
+    )
+    return f"{prefix}/data-{stamp}-{uuid.uuid4().hex[:8]}"
+
+
 def import_dataset(
     src_dir: str | Path,
     name: str,
     store: ObjectStore,
     manifest: dict | Manifest | None = None,
     progress: ProgressFn | None = None,
+    *,
+    strict: bool = False,
 ) -> ImportReport:
-    """Import the motion files of ``src_dir`` as dataset ``name`` into ``store``.
+    """Import the takes of ``src_dir`` as dataset ``name`` into ``store``.
 
     ``manifest``: a dict (see the module docstring) or None to use ``manifest.yaml`` (or .yml,
     .json) in ``src_dir`` when present. ``progress(done, total, file)`` is called after each file.
-    Raises ``NotFoundError`` (``dataset_source_not_found``) for a missing folder,
-    ``DanceGraphError`` ``manifest_invalid`` / ``dataset_empty`` / ``dataset_name_invalid``;
-    files that fail are listed in the report, not raised.
+    ``strict``: publish nothing unless every take passes. Raises ``NotFoundError``
+    (``dataset_source_not_found``) for a missing folder, ``DanceGraphError``
+    ``manifest_invalid`` / ``dataset_empty`` / ``dataset_name_invalid`` /
+    ``skeleton_source_invalid`` / ``skeleton_source_failed`` (the named skeleton take failed) /
+    ``dataset_takes_failed`` (strict, ``errors`` lists each take); otherwise takes that fail are
+    listed in the report with their code, not raised.
     """
     t0 = time.perf_counter()
     if not _NAME.match(name):
@@ -727,95 +952,77 @@ def import_dataset(
                 manifest = load_manifest(src / mname)
                 break
     m = parse_manifest(manifest)
-    files = _find_files(src, m.files)
+    lib, files = _library_source(src, m, _find_files(src, m.files))
     if not files:
         raise DanceGraphError(
-            f"{src}: no motion files matching {m.files!r}", code="dataset_empty", field=str(src)
-        )
-
-    prefix = f"datasets/{name}"
-    # Clip data goes to a fresh folder that dataset.json names; the previous import stays
-    # readable until the new dataset.json replaces it, then its folder is removed.
-    # Microsecond stamps sort by time, so cleanup below can tell earlier imports from later ones.
-    now_ns = time.time_ns()
-    stamp = (
-        time.strftime("%Y%m%dT%H%M%S", time.gmtime(now_ns // 10**9))
-        + f"{now_ns // 1000 % 10**6:06d}"
-    )
-    data_prefix = f"{prefix}/data-{stamp}-{uuid.uuid4().hex[:8]}"
-    skeleton: Skeleton | None = None
-    rows: list[ClipInfo] = []
-    bars: list[BarInfo] = []
-    failed: list[dict] = []
-    excluded: list[dict] = []
-    warnings: list[str] = []
-    digests: list[str] = []
-    seen: set[str] = set()
-    grids: dict[str, tuple] = {}
-
-    for done, path in enumerate(files, start=1):
-        cid = _clip_id(path.stem, m.strip_suffix)
-        cm = _clip_manifest(m, cid, path)
-        try:
-            if cm.exclude:
-                excluded.append({"file": path.name, "id": cid, "reason": cm.reason})
-                continue
-            if cid in seen:
-                raise DanceGraphError(
-                    f"clip id {cid!r} is already used by another file", code="duplicate_clip_id"
-                )
-            row, clip_bars, arrays, skel = _import_clip(
-                path, cid, cm, m, skeleton, MAIN_JOINTS, kinematic_beats
-            )
-            if cm.audio:
-                apath = _norm(src / cm.audio)
-                if not apath.is_relative_to(_norm(src)):
-                    raise DanceGraphError(
-                        f"paired audio {cm.audio!r} lies outside the import folder",
-                        code="manifest_invalid",
-                        field=f"clips.{cid}.audio",
-                    )
-                if apath.is_file():
-                    key = f"{data_prefix}/audio/{cid}{apath.suffix.lower()}"
-                    store.put_file(key, apath)
-                    row.audio = key
-                else:
-                    row.flags.append("audio_missing")
-                    warnings.append(f"{path.name}: paired audio {cm.audio!r} not found")
-            data = _npz_bytes(**arrays)
-            store.put_bytes(f"{data_prefix}/clips/{cid}.npz", data)
-            digests.append(cid + hashlib.sha256(data).hexdigest())
-            skeleton = skel
-            seen.add(cid)
-            rows.append(row)
-            bars.extend(clip_bars)
-            grids[cid] = (arrays["beats"], np.array([b.start_s for b in clip_bars]), row.tempo_bpm)
-        except DanceGraphError as exc:
-            failed.append({"file": path.name, "code": exc.code, "error": _local(exc.message, src)})
-        except (ValueError, OSError, MemoryError) as exc:
-            failed.append(
-                {"file": path.name, "code": "motion_file_invalid", "error": _local(str(exc), src)}
-            )
-        finally:
-            if progress is not None:
-                progress(done, len(files), path.name)
-
-    if not rows:
-        store.delete_prefix(data_prefix)
-        detail = "; ".join(f"{f['file']}: [{f['code']}] {f['error']}" for f in failed[:5])
-        raise DanceGraphError(
-            f"{src}: no clip could be imported ({len(failed)} failed, {len(excluded)} excluded)"
-            + (f": {detail}" if detail else ""),
+            f"{src}: no motion files matching {m.files or '*' + '/*'.join(TAKE_SUFFIXES)!r}",
             code="dataset_empty",
             field=str(src),
         )
+    prefix = f"datasets/{name}"
+    # Clip data goes to a fresh folder that dataset.json names; the previous import stays
+    # readable until the new dataset.json replaces it, then its folder is removed.
+    data_prefix = _data_prefix(prefix)
+    got = _Takes(failed=_absent_files(src, m))
+    for done, path in enumerate(files, start=1):
+        _import_take(src, path, m, lib, store, data_prefix, got)
+        if done == 1 and m.skeleton and lib.skeleton is None:
+            store.delete_prefix(data_prefix)
+            f = got.failed[-1]
+            raise DanceGraphError(
+                f"the skeleton take {f['file']} failed: [{f['code']}] {f['error']}",
+                code="skeleton_source_failed",
+                field="skeleton",
+            )
+        if progress is not None:
+            progress(done, len(files), path.name)
+    _refuse_failed(got, src, strict, store, data_prefix)
+    return _publish(src, name, store, m, lib, got, data_prefix, t0)
 
-    assert skeleton is not None  # set by the first imported clip, and rows holds one
-    prior = _bpm_range(m.tempo_prior_bpm)
-    fps_warning = _fps_warning(rows, prior)
+
+def _refuse_failed(
+    got: _Takes, src: Path, strict: bool, store: ObjectStore, data_prefix: str
+) -> None:
+    """Raise (nothing published) when no take passed, or any failed under ``strict``."""
+    if got.rows and not (strict and got.failed):
+        return
+    store.delete_prefix(data_prefix)
+    errors = [{"field": f["file"], "code": f["code"], "message": f["error"]} for f in got.failed]
+    detail = "; ".join(f"{f['file']}: [{f['code']}] {f['error']}" for f in got.failed[:5])
+    if not got.rows:
+        raise DanceGraphError(
+            f"{src}: no clip could be imported ({len(got.failed)} failed, "
+            f"{len(got.excluded)} excluded)" + (f": {detail}" if detail else ""),
+            code="dataset_empty",
+            field=str(src),
+            errors=errors,
+        )
+    raise DanceGraphError(
+        f"{len(got.failed)} of {len(got.failed) + len(got.rows)} takes failed, nothing was "
+        f"published: {detail}",
+        code="dataset_takes_failed",
+        field=got.failed[0]["file"],
+        errors=errors,
+    )
+
+
+def _publish(
+    src: Path,
+    name: str,
+    store: ObjectStore,
+    m: Manifest,
+    lib: _Library,
+    got: _Takes,
+    data_prefix: str,
+    t0: float,
+) -> ImportReport:
+    """Write ``dataset.json`` (the import becomes visible), drop older imports' data, report."""
+    assert lib.skeleton is not None  # set by the first imported take, and rows holds one
+    prefix = f"datasets/{name}"
+    fps_warning = _fps_warning(got.rows, _bpm_range(m.tempo_prior_bpm))
     if fps_warning:
-        warnings.append(fps_warning)
-    counts = Counter(b.signature for b in bars)
+        got.warnings.append(fps_warning)
+    counts = Counter(b.signature for b in got.bars)
     signature_counts = {s: counts.get(s, 0) for s in sig.COMMON_SIGNATURES}
     doc: dict[str, Any] = {
         "format": FORMAT_VERSION,
@@ -829,19 +1036,21 @@ def import_dataset(
         "scale": m.scale,
         "tempo_prior_bpm": m.tempo_prior_bpm,
         "style_tempo_bpm": m.style_tempo_bpm,
-        "skeleton": skeleton.to_dict(),
-        "clips": [c.to_dict() for c in rows],
-        "bars": [b.to_dict() for b in bars],
-        "failed": failed,
-        "excluded": excluded,
-        "warnings": warnings,
+        "style": m.style,
+        "skeleton_source": lib.source,
+        "skeleton": lib.skeleton.to_dict(),
+        "clips": [c.to_dict() for c in got.rows],
+        "bars": [b.to_dict() for b in got.bars],
+        "failed": got.failed,
+        "excluded": got.excluded,
+        "warnings": got.warnings,
         "signature_counts": signature_counts,
-        "partners": partner_rows(m.partners, grids),
+        "partners": partner_rows(m.partners, got.grids),
     }
     # The version hashes what a graph is built from, not how the import went.
     content = {k: doc[k] for k in _CONTENT_KEYS}
     body = json.dumps(content, sort_keys=True, allow_nan=False).encode()
-    version = hashlib.sha256(body + "".join(sorted(digests)).encode()).hexdigest()
+    version = hashlib.sha256(body + "".join(sorted(got.digests)).encode()).hexdigest()
     doc["version"] = version
     doc["data_prefix"] = data_prefix
     store.put_bytes(f"{prefix}/dataset.json", json.dumps(doc, indent=1, allow_nan=False).encode())
@@ -854,11 +1063,11 @@ def import_dataset(
     return ImportReport(
         name=name,
         version=version,
-        clips=rows,
-        failed=failed,
-        excluded=excluded,
-        warnings=warnings,
-        n_bars=len(bars),
+        clips=got.rows,
+        failed=got.failed,
+        excluded=got.excluded,
+        warnings=got.warnings,
+        n_bars=len(got.bars),
         signature_counts=signature_counts,
         elapsed_s=time.perf_counter() - t0,
         partners=doc["partners"],
@@ -870,24 +1079,17 @@ def _import_clip(
     cid: str,
     cm: ClipManifest,
     m: Manifest,
-    skeleton: Skeleton | None,
+    lib: _Library,
+    audio: Path | None,
     main_joints: tuple[str, ...],
     kinematic_beats_fn: Callable[[np.ndarray, float], np.ndarray],
-) -> tuple[ClipInfo, list[BarInfo], dict[str, np.ndarray], Skeleton]:
-    """Read, grid, cut and label one clip; raise DanceGraphError on a bad file."""
+) -> tuple[ClipInfo, list[BarInfo], dict[str, np.ndarray]]:
+    """Read, put on the library's skeleton, grid, cut and label one take; raise
+    DanceGraphError (a named code) on a bad take. ``audio``: the music it was danced to."""
     pname = str(path)
     scale = cm.scale or m.scale
-    motion = read_bvh(path, scale=scale)
-    header_fps = motion.fps
-    fps = float(cm.fps or m.fps or header_fps)
-    motion = Motion(motion.skeleton, fps, motion.root_positions, motion.rotations)
-    if skeleton is not None and motion.skeleton != skeleton:
-        raise MotionFileError(
-            f"skeleton differs from the dataset's ({motion.skeleton.n_joints} joints vs "
-            f"{skeleton.n_joints}): one dataset holds one skeleton",
-            path=pname,
-            code="skeleton_mismatch",
-        )
+    motion, take = _take_on_library(path, cm, m, lib)
+    header_fps, fps = take["header_fps"], motion.fps
     n = motion.n_frames
     duration = n / fps
     positions, world = forward_kinematics(motion)
@@ -921,6 +1123,8 @@ def _import_clip(
         )
     too_fast = tempo_mod.outside_prior(motion_tempo, params.prior_bpm)
 
+    check: dict = {}
+    offset = cm.audio_offset_s if cm.audio_offset_s is not None else m.audio_offset_s
     if ann is not None:
         source = "annotation"
         bar_beats = ann
@@ -928,6 +1132,15 @@ def _import_clip(
         if len(bar_beats):
             tempo_bpm = float(240.0 / np.median(bar_beats[:, 4] - bar_beats[:, 0]))
         confidence = 1.0
+    elif audio is not None:
+        source = "music"
+        beats, bar_beats, tempo_bpm, confidence = _music_grid(audio, offset, m.style_tempo_bpm)
+        if signals is not None:
+            check = _grid_check(
+                beats, bar_beats, tempo_bpm, tempo_mod.estimate_grid(signals, fps, params)
+            )
+            if not check["agree"]:
+                flags.append("music_motion_disagree")
     elif tempo_bpm is not None or not m.steady_beat:
         source = "manifest_tempo"
         if tempo_bpm is None:
@@ -981,7 +1194,12 @@ def _import_clip(
             field=f"clips.{cid}.signatures",
         )
     if len(bar_beats) == 0:
-        flags.append("no_bars")
+        raise DanceGraphError(
+            f"{path.name}: {duration:.2f} s holds no whole 4-beat bar of its grid "
+            f"({_fmt(tempo_bpm if tempo_bpm is not None else float('nan'))} BPM, {source})",
+            code="take_under_one_bar",
+            field=path.name,
+        )
     bits = tempo_mod.bar_signature_bits(kb, bar_beats)
     nearest = sig.nearest_common(bits) if len(bits) else np.zeros(0, dtype=int)
     fit = tempo_mod.grid_fit(kb, bar_beats) if len(bar_beats) else 0.0
@@ -1026,6 +1244,11 @@ def _import_clip(
         n_bars=len(clip_bars),
         grid_fit=float(fit),
         sections=sections,
+        source_format=take["format"],
+        source_joints=take["joints"],
+        retarget=take["retarget"],
+        audio_offset_s=float(offset) if audio is not None else None,
+        grid_check=check,
     )
     arrays = {
         "root_positions": motion.root_positions.astype(np.float32),
@@ -1033,7 +1256,228 @@ def _import_clip(
         "beats": np.asarray(beats, dtype=float),
         "kinematic_beats": kb,
     }
-    return row, clip_bars, arrays, motion.skeleton
+    return row, clip_bars, arrays
+
+
+def _music_grid(
+    audio: Path, offset_s: float, style_range: list[float] | None
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """``(beats (N,), bar_beats (B, 5), tempo BPM, confidence)`` of the music a take was danced
+    to, on the take's clock (audio time − ``offset_s``), counted at ``style_range`` where given.
+
+    Raises ``AudioError`` (``audio_undecodable`` and the decoder's codes, ``no_beat``).
+    """
+    from dancegraph.music.analysis import analyze
+
+    rng = (float(style_range[0]), float(style_range[1])) if style_range else None
+    a = analyze(audio, tempo_range=rng)
+    return (
+        np.asarray(a.beats, dtype=float) - offset_s,
+        np.asarray(a.bar_beats, dtype=float).reshape(-1, 5) - offset_s,
+        float(a.tempo_bpm),
+        float(a.tempo_confidence),
+    )
+
+
+def _grid_check(
+    beats: np.ndarray, bar_beats: np.ndarray, tempo_bpm: float, motion: tempo_mod.BeatGrid
+) -> dict:
+    """How the motion's own grid agrees with a music grid: ``tempo.partner_agreement``'s
+    numbers (music first), ``agree`` by the partner thresholds (``PARTNER_TEMPO_PCT``,
+    ``PARTNER_OFFSET_MS``, and downbeats agreeing on at least half the bars)."""
+    row = tempo_mod.partner_agreement(
+        beats, bar_beats[:, 0], tempo_bpm, motion.beats, motion.bars[:, 0], motion.tempo_bpm
+    )
+    agree = (
+        row["tempo_diff_pct"] <= PARTNER_TEMPO_PCT
+        and row["median_offset_ms"] <= PARTNER_OFFSET_MS
+        and row["downbeat_agreement"] >= 0.5
+    )
+    row = {k: (_round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}
+    tempi = {
+        "music_tempo_bpm": _round(tempo_bpm, 2),
+        "motion_tempo_bpm": _round(motion.tempo_bpm, 2),
+    }
+    return {**row, **tempi, "agree": bool(agree)}
+
+
+# --------------------------------------------------------------------------------------------
+# Takes on the library's skeleton
+# --------------------------------------------------------------------------------------------
+
+#: File suffixes read as takes (the default of the manifest's ``files``).
+TAKE_SUFFIXES = (".bvh", ".glb", ".gltf", ".fbx")
+
+
+@dataclass
+class _Library:
+    """The library's skeleton, its roles and the rig other takes are retargeted onto (set by
+    the manifest's ``skeleton`` rig file, else by the first take imported; a take's rig is
+    built when the first take on another skeleton comes); ``header_fps``: the frame rate of
+    the first take without a declared fps (``fps_mixed`` for another)."""
+
+    skeleton: Skeleton | None = None
+    roles: RoleMap | None = None
+    rig: Rig | None = None
+    source: str | None = None
+    header_fps: float | None = None
+
+
+def _rest(skeleton: Skeleton) -> np.ndarray:
+    """``(J, 3)`` rest-pose joint positions (m), summed from the offsets."""
+    pos = np.zeros((skeleton.n_joints, 3))
+    for j in range(skeleton.n_joints):
+        p = skeleton.parents[j]
+        pos[j] = skeleton.offsets[j] if p < 0 else pos[p] + skeleton.offsets[j]
+    return pos
+
+
+def _take_roles(skeleton: Skeleton, mapping: dict[str, str] | None, name: str) -> RoleMap:
+    """The humanoid roles of a take's skeleton (``mapping``, names, then structure);
+    ``MotionFileError`` ``skeleton_unmapped`` where the required ones are not found. With a
+    ``mapping`` the skeleton's canonical joints follow it."""
+    try:
+        roles = map_roles(skeleton.names, skeleton.parents, _rest(skeleton), mapping)
+    except RigError as exc:
+        raise _unmapped(exc.message, name) from None
+    missing = [r for r in REQUIRED_ROLES if r not in roles.roles]
+    if missing:
+        raise _unmapped(f"no joint for {', '.join(missing)}", name)
+    if mapping:
+        canon = {k: roles.roles[k] for k in CANONICAL_JOINTS if k in roles.roles}
+        for side in ("left", "right"):
+            canon.setdefault(f"{side}_toe", canon[f"{side}_ankle"])
+        skeleton.canonical = canon
+    return roles
+
+
+def _unmapped(why: str, name: str) -> MotionFileError:
+    """A take whose skeleton shows no humanoid body: ``skeleton_unmapped``."""
+    return MotionFileError(
+        f"no humanoid body found ({why}); name its joints in the manifest's 'roles' "
+        "(role -> joint name)",
+        path=name,
+        code="skeleton_unmapped",
+    )
+
+
+def _library_rig(lib: _Library) -> Rig:
+    """The rig of the library's skeleton at rest, built once; ``skeleton_source_invalid`` when
+    it cannot be a retarget target (e.g. a bone of no length)."""
+    if lib.rig is None:
+        assert lib.skeleton is not None and lib.roles is not None
+        sk = lib.skeleton
+        mats = np.tile(np.eye(4), (sk.n_joints, 1, 1))
+        mats[:, :3, 3] = _rest(sk)
+        try:
+            lib.rig = build_rig(
+                sk.names,
+                sk.parents,
+                mats,
+                mapping={r: n for r, n in lib.roles.roles.items() if lib.roles.how[r] == "user"},
+                source={"format": "bvh", "file": lib.source},
+                end_sites={sk.names[j]: v for j, v in sk.end_sites.items()},
+            )
+        except RigError as exc:
+            raise DanceGraphError(
+                f"the library's skeleton ({lib.source}) cannot take retargeted takes: "
+                f"{exc.message}; name another take or a rig file in 'skeleton'",
+                code="skeleton_source_invalid",
+                field="skeleton",
+            ) from None
+    return lib.rig
+
+
+def _take_mapping(names: list[str], cm: ClipManifest, m: Manifest) -> dict[str, str] | None:
+    """The role map of a take: its own, else the library's where the take has all its joints."""
+    if cm.roles is not None:
+        return cm.roles
+    if m.roles and set(m.roles.values()) <= set(names):
+        return m.roles
+    return None
+
+
+def _read_take(
+    path: Path, cm: ClipManifest, m: Manifest
+) -> tuple[Motion, RoleMap, Rig | None, float]:
+    """``(motion in metres at the declared or the file's fps, its roles, its rig where the
+    file is one (GLB), the file's own fps)``."""
+    suffix = path.suffix.lower()
+    declared = cm.fps or m.fps
+    rig = None
+    if suffix == ".bvh":
+        motion = read_bvh(path, scale=float(cm.scale or m.scale))
+        roles = _take_roles(motion.skeleton, _take_mapping(motion.skeleton.names, cm, m), path.name)
+    elif suffix in (".glb", ".gltf"):  # glTF is metres: no scale
+        from dancegraph.motion.gltf_anim import read_gltf_motion
+
+        try:
+            motion, rig = read_gltf_motion(path, fps=declared, mapping=cm.roles or m.roles)
+        except RigError as exc:
+            if exc.code in ("rig_missing_roles", "rig_disconnected", "rig_map_invalid"):
+                raise _unmapped(exc.message, path.name) from None
+            raise MotionFileError(exc.message, path=path.name, code=exc.code) from None
+        roles = rig.roles
+    else:
+        raise MotionFileError(
+            "FBX takes are not read yet (their animation): export the take as BVH or GLB",
+            path=path.name,
+            code="take_format_unsupported",
+        )
+    header = motion.fps
+    fps = float(declared or header)
+    return Motion(motion.skeleton, fps, motion.root_positions, motion.rotations), roles, rig, header
+
+
+def _check_fps(header: float, declared: bool, lib: _Library, name: str) -> None:
+    """``fps_mixed`` for a take at another frame rate than the library's, none declared."""
+    if declared:
+        return
+    if lib.header_fps is not None and abs(header - lib.header_fps) > 1e-3 * header:
+        raise MotionFileError(
+            f"{header:g} fps, the library's takes {lib.header_fps:g} fps: declare the "
+            "take's 'fps' in the manifest",
+            path=name,
+            code="fps_mixed",
+        )
+    lib.header_fps = lib.header_fps or header
+
+
+def _take_on_library(
+    path: Path, cm: ClipManifest, m: Manifest, lib: _Library
+) -> tuple[Motion, dict]:
+    """A take read and put on the library's skeleton (retargeted when on another one).
+
+    Returns the motion and ``{format, joints, header_fps, retarget}`` (``retarget`` empty for a
+    take already on the library's skeleton). Sets ``lib`` from the first take when unset.
+    """
+    from dancegraph.motion.retarget import plan_retarget, retarget
+
+    motion, roles, rig, header = _read_take(path, cm, m)
+    _check_fps(header, bool(cm.fps or m.fps), lib, path.name)
+    take = {
+        "format": path.suffix.lower().lstrip(".").replace("gltf", "glb"),
+        "joints": motion.skeleton.n_joints,
+        "header_fps": float(header),
+        "retarget": {},
+    }
+    if lib.skeleton is None:
+        lib.skeleton, lib.roles, lib.rig = motion.skeleton, roles, rig
+        lib.source = f"take:{path.name}"
+        return motion, take
+    if motion.skeleton == lib.skeleton:
+        return motion, take
+    target = _library_rig(lib)
+    out, report = retarget(motion, target, plan=plan_retarget(motion.skeleton, target, roles))
+    order = [target.skeleton.index(nm) for nm in lib.skeleton.names]
+    take["retarget"] = {
+        "from_joints": motion.skeleton.n_joints,
+        "foot_sliding_m_s": _round(report["sliding_m_s"], 4),
+        "direction_error_deg": _round(report["direction_error_deg"]["median"], 2),
+        "cpu_seconds": report["cpu_seconds"],
+    }
+    on_lib = Motion(lib.skeleton, motion.fps, out.root_positions, out.rotations[:, order])
+    return on_lib, take
 
 
 # --------------------------------------------------------------------------------------------
@@ -1079,6 +1523,8 @@ def load_dataset(store: ObjectStore, name: str) -> Dataset:
                     "scale",
                     "tempo_prior_bpm",
                     "style_tempo_bpm",
+                    "style",
+                    "skeleton_source",
                     "failed",
                     "excluded",
                     "warnings",
@@ -1114,6 +1560,10 @@ def grid_report(ds: Dataset) -> dict:
                 "tempo_bpm": _round(c.tempo_bpm, 3),
                 "confidence": _round(c.tempo_confidence, 3),
                 "beat_source": c.beat_source,
+                "grid_check": c.grid_check,
+                "audio_offset_s": c.audio_offset_s,
+                "source_format": c.source_format,
+                "retarget": c.retarget,
                 "flags": c.flags,
                 "sections": c.sections,
                 "beats": [round(float(t), 4) for t in ds.beats(c.id)],
