@@ -97,6 +97,17 @@ class Settings(BaseSettings):
         description="largest accepted audio upload (a 20-minute CD-quality WAV fits)",
     )
     max_audio_seconds: float = Field(15 * 60.0, gt=0, description="longest accepted song")
+    rig_parse_memory_bytes: int = Field(
+        2 * 1024**3,
+        gt=0,
+        description="address-space limit of the sandboxed child that parses a rig file",
+    )
+    rig_parse_cpu_s: float = Field(
+        30.0, gt=0, description="CPU-seconds limit of the sandboxed child that parses a rig file"
+    )
+    rig_parse_wall_s: float = Field(
+        30.0, gt=0, description="wall-clock limit of the sandboxed child that parses a rig file"
+    )
     min_audio_seconds: float = Field(
         8.0, gt=0, description="shortest accepted song (two bars at 60 bpm)"
     )

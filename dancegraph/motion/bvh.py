@@ -6,7 +6,11 @@ user's file can have becomes a ``MotionFileError`` with a stable code, the file 
 applies, the 1-based line number:
 
 ``bvh_not_text``, ``bvh_syntax``, ``bvh_truncated``, ``bvh_channel_count``, ``bvh_nan``,
-``bvh_no_frames``, ``bvh_rotation_order``, ``bvh_duplicate_joint``, ``bvh_frame_time``.
+``bvh_no_frames``, ``bvh_rotation_order``, ``bvh_duplicate_joint``, ``bvh_frame_time``, and
+``bvh_too_complex`` for a file past the reader's limits, checked before anything is allocated
+for it: :data:`MAX_JOINTS` joints, :data:`MAX_DEPTH` nesting, :data:`MAX_HEADER_BYTES` of
+hierarchy, and ``max_values`` frames × channels (:data:`MAX_VALUES` by default). The hierarchy is
+walked with an explicit stack, so no nesting can exhaust Python's recursion limit.
 
 Rotations: BVH Euler channels are intrinsic, applied in file order (``Zrotation Xrotation
 Yrotation`` means ``R = Rz · Rx · Ry``), which is scipy's upper-case ``"ZXY"``.
@@ -29,7 +33,22 @@ from dancegraph.motion.skeleton import Motion, Skeleton
 _POSITION = {"Xposition": "X", "Yposition": "Y", "Zposition": "Z"}
 _ROTATION = {"Xrotation": "X", "Yrotation": "Y", "Zrotation": "Z"}
 _MOTION_RE = re.compile(r"^[ \t]*MOTION[ \t]*\r?$", re.MULTILINE | re.IGNORECASE)
+_MOTION_BYTES_RE = re.compile(rb"^[ \t]*MOTION[ \t]*\r?$", re.MULTILINE | re.IGNORECASE)
 _FLOAT_RE = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+#: Most joints in one hierarchy (a face-rigged character has a few hundred).
+MAX_JOINTS = 2000
+#: Deepest joint nesting (a finger tip of a detailed rig sits about 30 deep).
+MAX_DEPTH = 256
+#: Largest hierarchy (the text before ``MOTION``).
+MAX_HEADER_BYTES = 8 * 1024 * 1024
+#: Most frames × channels :func:`read_bvh` parses by default (20 minutes at 120 fps of 115
+#: joints; about 0.4 GB as float64).
+MAX_VALUES = 50_000_000
+
+
+def _too_complex(what: str, path: str, line: int | None = None) -> MotionFileError:
+    return MotionFileError(what, path=path, line=line, code="bvh_too_complex")
 
 
 class _Tokens:
@@ -60,7 +79,10 @@ class _Tokens:
         tok, line = self.next(repr(word))
         if tok.lower() != word.lower():
             raise MotionFileError(
-                f"expected {word!r}, found {tok!r}", path=self.path, line=line, code="bvh_syntax"
+                f"expected {word!r}, found {tok[:100]!r}",
+                path=self.path,
+                line=line,
+                code="bvh_syntax",
             )
         return line
 
@@ -69,14 +91,16 @@ class _Tokens:
         if not _FLOAT_RE.match(tok):
             code = "bvh_nan" if tok.lower() in {"nan", "inf", "-inf", "+inf"} else "bvh_syntax"
             raise MotionFileError(
-                f"expected a number ({what}), found {tok!r}", path=self.path, line=line, code=code
+                f"expected a number ({what}), found {tok[:100]!r}",
+                path=self.path,
+                line=line,
+                code=code,
             )
         return float(tok)
 
 
 def _check_text(raw: bytes, path: str) -> str:
-    head = raw[:65536]
-    if b"\x00" in head:
+    if b"\x00" in raw:
         raise MotionFileError("not a text BVH file (binary data)", path=path, code="bvh_not_text")
     try:
         text = raw.decode("utf-8-sig")
@@ -97,136 +121,207 @@ def _check_text(raw: bytes, path: str) -> str:
     return text
 
 
-def _parse_hierarchy(tokens: _Tokens, path: str):
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[list[float]] = []
-    channels: list[tuple[str, ...]] = []
-    end_sites: dict[int, np.ndarray] = {}
-    seen: dict[str, int] = {}
+class _Hierarchy:
+    """The joints read so far: names, parents, offsets, channels, end sites."""
 
-    tokens.expect("HIERARCHY")
-    tok, line = tokens.next("ROOT")
-    if tok.upper() != "ROOT":
-        raise MotionFileError(
-            f"expected ROOT, found {tok!r}", path=path, line=line, code="bvh_syntax"
-        )
+    def __init__(self, path: str):
+        self.path = path
+        self.names: list[str] = []
+        self.parents: list[int] = []
+        self.offsets: list[list[float]] = []
+        self.channels: list[tuple[str, ...]] = []
+        self.end_sites: dict[int, np.ndarray] = {}
+        self.seen: dict[str, int] = {}
 
-    def parse_joint(parent: int, keyword_line: int) -> None:
+    def joint(self, tokens: _Tokens, parent: int) -> int:
+        """Read one joint's name, OFFSET and CHANNELS (up to its children); its index."""
+        path = self.path
         name, name_line = tokens.next("a joint name")
         if name in ("{", "}"):
             raise MotionFileError(
                 "joint without a name", path=path, line=name_line, code="bvh_syntax"
             )
-        if name in seen:
+        if name in self.seen:
             raise MotionFileError(
-                f"duplicate joint name {name!r} (first on line {seen[name]})",
+                f"duplicate joint name {name[:100]!r} (first on line {self.seen[name]})",
                 path=path,
                 line=name_line,
                 code="bvh_duplicate_joint",
             )
-        seen[name] = name_line
-        idx = len(names)
-        names.append(name)
-        parents.append(parent)
+        if len(self.names) >= MAX_JOINTS:
+            raise _too_complex(f"more than {MAX_JOINTS} joints", path, name_line)
+        self.seen[name] = name_line
+        self.names.append(name)
+        self.parents.append(parent)
         tokens.expect("{")
         tokens.expect("OFFSET")
-        offsets.append(
+        self.offsets.append(
             [tokens.number("OFFSET x"), tokens.number("OFFSET y"), tokens.number("OFFSET z")]
         )
-        tok, line = tokens.next("CHANNELS")
-        if tok.upper() != "CHANNELS":
+        self.channels.append(_channels(tokens, name, path))
+        return len(self.names) - 1
+
+    def end_site(self, tokens: _Tokens, joint: int) -> None:
+        tokens.expect("Site")
+        tokens.expect("{")
+        tokens.expect("OFFSET")
+        self.end_sites[joint] = np.array(
+            [tokens.number("OFFSET x"), tokens.number("OFFSET y"), tokens.number("OFFSET z")]
+        )
+        tokens.expect("}")
+
+
+def _channels(tokens: _Tokens, name: str, path: str) -> tuple[str, ...]:
+    """A joint's ``CHANNELS n ...`` line: position and rotation channels, each axis once."""
+    tok, line = tokens.next("CHANNELS")
+    if tok.upper() != "CHANNELS":
+        raise MotionFileError(
+            f"expected CHANNELS, found {tok[:100]!r}", path=path, line=line, code="bvh_syntax"
+        )
+    n_tok, n_line = tokens.next("a channel count")
+    if not (n_tok.isascii() and n_tok.isdigit()):
+        raise MotionFileError(
+            f"expected a channel count, found {n_tok[:100]!r}",
+            path=path,
+            line=n_line,
+            code="bvh_syntax",
+        )
+    chans = []
+    for _ in range(min(int(n_tok), 7)):  # more than six repeats an axis: refused below
+        ch, ch_line = tokens.next("a channel name")
+        if ch not in _POSITION and ch not in _ROTATION:
             raise MotionFileError(
-                f"expected CHANNELS, found {tok!r}", path=path, line=line, code="bvh_syntax"
-            )
-        n_tok, n_line = tokens.next("a channel count")
-        if not n_tok.isdigit():
-            raise MotionFileError(
-                f"expected a channel count, found {n_tok!r}",
+                f"unknown channel {ch[:100]!r} of joint {name[:100]!r}",
                 path=path,
-                line=n_line,
-                code="bvh_syntax",
-            )
-        chans = []
-        for _ in range(int(n_tok)):
-            ch, ch_line = tokens.next("a channel name")
-            if ch not in _POSITION and ch not in _ROTATION:
-                raise MotionFileError(
-                    f"unknown channel {ch!r} of joint {name!r}",
-                    path=path,
-                    line=ch_line,
-                    code="bvh_rotation_order",
-                )
-            chans.append(ch)
-        rot_axes = [_ROTATION[c] for c in chans if c in _ROTATION]
-        if rot_axes and sorted(rot_axes) != ["X", "Y", "Z"]:
-            raise MotionFileError(
-                f"joint {name!r} has rotation channels {' '.join(rot_axes)}: an Euler order needs "
-                "X, Y and Z once each",
-                path=path,
-                line=n_line,
+                line=ch_line,
                 code="bvh_rotation_order",
             )
-        pos_axes = [_POSITION[c] for c in chans if c in _POSITION]
-        if pos_axes and sorted(pos_axes) != ["X", "Y", "Z"]:
-            raise MotionFileError(
-                f"joint {name!r} has position channels {' '.join(pos_axes)}; X, Y and Z are needed",
-                path=path,
-                line=n_line,
-                code="bvh_channel_count",
-            )
-        channels.append(tuple(chans))
-        while True:
-            tok, line = tokens.next("JOINT, End Site or }")
-            up = tok.upper()
-            if up == "}":
-                return
-            if up == "JOINT":
-                parse_joint(idx, line)
-            elif up == "END":
-                tokens.expect("Site")
-                tokens.expect("{")
-                tokens.expect("OFFSET")
-                end_sites[idx] = np.array(
-                    [
-                        tokens.number("OFFSET x"),
-                        tokens.number("OFFSET y"),
-                        tokens.number("OFFSET z"),
-                    ]
-                )
-                tokens.expect("}")
-            else:
-                raise MotionFileError(
-                    f"expected JOINT, End Site or '}}', found {tok!r}",
-                    path=path,
-                    line=line,
-                    code="bvh_syntax",
-                )
+        chans.append(ch)
+    rot_axes = [_ROTATION[c] for c in chans if c in _ROTATION]
+    if rot_axes and sorted(rot_axes) != ["X", "Y", "Z"]:
+        raise MotionFileError(
+            f"joint {name[:100]!r} has rotation channels {' '.join(rot_axes)}: an Euler order "
+            "needs X, Y and Z once each",
+            path=path,
+            line=n_line,
+            code="bvh_rotation_order",
+        )
+    pos_axes = [_POSITION[c] for c in chans if c in _POSITION]
+    if pos_axes and sorted(pos_axes) != ["X", "Y", "Z"]:
+        raise MotionFileError(
+            f"joint {name[:100]!r} has position channels {' '.join(pos_axes)}; X, Y and Z are "
+            "needed",
+            path=path,
+            line=n_line,
+            code="bvh_channel_count",
+        )
+    return tuple(chans)
 
-    parse_joint(-1, line)
+
+def _parse_hierarchy(tokens: _Tokens, path: str):
+    """``(names, parents, offsets, channels, end_sites)`` of the HIERARCHY block; the joints
+    are read with an explicit stack of open joints (at most :data:`MAX_DEPTH`)."""
+    tree = _Hierarchy(path)
+    tokens.expect("HIERARCHY")
+    tok, line = tokens.next("ROOT")
+    if tok.upper() != "ROOT":
+        raise MotionFileError(
+            f"expected ROOT, found {tok[:100]!r}", path=path, line=line, code="bvh_syntax"
+        )
+    open_joints = [tree.joint(tokens, -1)]
+    while open_joints:
+        tok, line = tokens.next("JOINT, End Site or }")
+        up = tok.upper()
+        if up == "}":
+            open_joints.pop()
+        elif up == "JOINT":
+            if len(open_joints) >= MAX_DEPTH:
+                raise _too_complex(f"joints nested more than {MAX_DEPTH} deep", path, line)
+            open_joints.append(tree.joint(tokens, open_joints[-1]))
+        elif up == "END":
+            tree.end_site(tokens, open_joints[-1])
+        else:
+            raise MotionFileError(
+                f"expected JOINT, End Site or '}}', found {tok[:100]!r}",
+                path=path,
+                line=line,
+                code="bvh_syntax",
+            )
     if tokens.pos < len(tokens.items):
         tok, line = tokens.items[tokens.pos]
         raise MotionFileError(
-            f"unexpected {tok!r} after the root joint (one ROOT per file is supported)",
+            f"unexpected {tok[:100]!r} after the root joint (one ROOT per file is supported)",
             path=path,
             line=line,
             code="bvh_syntax",
         )
-    return names, parents, offsets, channels, end_sites
+    return tree.names, tree.parents, tree.offsets, tree.channels, tree.end_sites
+
+
+def read_bvh_skeleton(path: str | os.PathLike, *, scale: float = 1.0) -> Skeleton:
+    """The hierarchy of a BVH file (a rig's), its frames left unparsed.
+
+    Reads at most :data:`MAX_HEADER_BYTES` (plus one chunk) into memory whatever the file's
+    size; the rest is only scanned for NUL bytes (``bvh_not_text``). ``scale``: metres per file
+    unit. Raises ``MotionFileError`` as :func:`read_bvh` does for the hierarchy.
+    """
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    pname = str(path)
+    head = bytearray()
+    motion = None
+    try:
+        with open(path, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                if b"\x00" in chunk:
+                    raise MotionFileError(
+                        "not a text BVH file (binary data)", path=pname, code="bvh_not_text"
+                    )
+                if motion is None:
+                    head += chunk
+                    motion = _MOTION_BYTES_RE.search(head)
+                    if motion is None and len(head) > MAX_HEADER_BYTES:
+                        raise _too_complex(f"no MOTION line in {MAX_HEADER_BYTES} bytes", pname)
+    except OSError as exc:
+        raise MotionFileError(
+            f"cannot read: {exc.strerror}", path=pname, code="bvh_unreadable"
+        ) from None
+    if motion is None:
+        raise MotionFileError("no MOTION section", path=pname, code="bvh_truncated")
+    if motion.start() > MAX_HEADER_BYTES:
+        raise _too_complex(f"a hierarchy larger than {MAX_HEADER_BYTES} bytes", pname)
+    text = _check_text(bytes(head[: motion.start()]), pname)
+    names, parents, offsets, channels, end_sites = _parse_hierarchy(
+        _Tokens(text.split("\n"), pname), pname
+    )
+    return Skeleton(
+        names=names,
+        parents=np.asarray(parents),
+        offsets=np.asarray(offsets) * scale,
+        channels=channels,
+        end_sites={k: v * scale for k, v in end_sites.items()},
+    )
 
 
 def _euler_order(chans: tuple[str, ...]) -> str:
     return "".join(_ROTATION[c] for c in chans if c in _ROTATION)
 
 
-def read_bvh(path: str | os.PathLike, *, scale: float = 1.0, fps: float | None = None) -> Motion:
+def read_bvh(
+    path: str | os.PathLike,
+    *,
+    scale: float = 1.0,
+    fps: float | None = None,
+    max_values: int = MAX_VALUES,
+) -> Motion:
     """Read a BVH file.
 
     ``scale`` converts file units to metres (0.056444 for CMU ASF units); ``fps`` overrides the
     header's frame time (e.g. 60 for CMU takes published with a 120 fps header). A frame time
     within 0.1 % of a whole frame rate is rounded to it (0.008333 s → 120 fps). Joints without
     rotation channels get identity rotations; position channels below the root are read but
-    not kept (the offsets stand).
+    not kept (the offsets stand). A file of more than ``max_values`` frames × channels is
+    refused (``bvh_too_complex``) before its frames are parsed.
     """
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps}")
@@ -243,6 +338,8 @@ def read_bvh(path: str | os.PathLike, *, scale: float = 1.0, fps: float | None =
     text = _check_text(raw, pname)
     found = _MOTION_RE.search(text)
     if found is None:
+        if len(text) > MAX_HEADER_BYTES:
+            raise _too_complex(f"no MOTION line in the first {MAX_HEADER_BYTES} bytes", pname)
         lines = text.split("\n")
         tokens = _Tokens(lines, pname)
         try:
@@ -271,6 +368,8 @@ def read_bvh(path: str | os.PathLike, *, scale: float = 1.0, fps: float | None =
         pos = nl
     lines[motion_line] = "MOTION"
     frame_block = text[pos + 1 :] if pos < len(text) else ""
+    if found.start() > MAX_HEADER_BYTES:
+        raise _too_complex(f"a hierarchy larger than {MAX_HEADER_BYTES} bytes", pname)
     names, parents, offsets, channels, end_sites = _parse_hierarchy(
         _Tokens(lines[:motion_line], pname), pname
     )
@@ -290,11 +389,17 @@ def read_bvh(path: str | os.PathLike, *, scale: float = 1.0, fps: float | None =
         return line[len(key) :].strip(), no + 1
 
     frames_tok, frames_line = header_value(1, "Frames:")
-    if not frames_tok.isdigit():
+    if not (frames_tok.isascii() and frames_tok.isdigit()):
         raise MotionFileError(
-            f"bad frame count {frames_tok!r}", path=pname, line=frames_line, code="bvh_syntax"
+            f"bad frame count {frames_tok[:100]!r}", path=pname, line=frames_line, code="bvh_syntax"
         )
     n_frames = int(frames_tok)
+    if n_frames * n_channels > max_values:
+        raise _too_complex(
+            f"{n_frames} frames of {n_channels} channels: more than {max_values} values",
+            pname,
+            frames_line,
+        )
     if n_frames == 0:
         raise MotionFileError(
             "the file has zero frames", path=pname, line=frames_line, code="bvh_no_frames"

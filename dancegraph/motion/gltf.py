@@ -36,6 +36,10 @@ _COMPONENTS = {
     5126: np.float32,
 }
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+#: Most nodes a rig file may hold.
+MAX_NODES = 20_000
+#: Most bytes all of a rig file's accessors may decode together.
+MAX_DECODED_BYTES = 256 * 1024 * 1024
 
 
 def _unreadable(path: Path, why: str):
@@ -44,67 +48,127 @@ def _unreadable(path: Path, why: str):
     return RigError(f"{path.name}: {why}", code="rig_unreadable", field=path.name)
 
 
-def _load(path: Path) -> tuple[dict, list[bytes]]:
-    """The glTF JSON and its buffers' bytes, from a GLB or a ``.gltf`` (data URIs, files beside)."""
+class _Buffers(list[bytes]):
+    """A file's buffers' bytes, and how many more bytes its accessors may still decode."""
+
+    decode_left: int = 0
+
+
+def _json(text: bytes, path: Path):
+    """The glTF JSON object; ``rig_too_complex`` when nested past Python's recursion limit."""
+    from dancegraph.motion.rig import RigError
+
+    try:
+        doc = json.loads(text.decode("utf-8"))
+    except RecursionError:
+        raise RigError(
+            f"{path.name}: its JSON is nested too deep", code="rig_too_complex", field=path.name
+        ) from None
+    except ValueError:
+        raise _unreadable(path, "its JSON is not readable") from None
+    if not isinstance(doc, dict):
+        raise _unreadable(path, "its JSON is not an object")
+    return doc
+
+
+def _glb_chunks(raw: bytes, path: Path) -> tuple[dict, bytes]:
+    """The JSON and BIN chunks of a GLB, each checked against the file's real length."""
+    if len(raw) < 20:
+        raise _unreadable(path, "truncated GLB header")
+    _magic, version, length = struct.unpack_from("<III", raw, 0)
+    if version != 2 or length > len(raw):
+        raise _unreadable(path, f"GLB version {version} or length {length} not readable")
+    offset, doc, bin_chunk = 12, None, b""
+    while offset + 8 <= length:
+        size, kind = struct.unpack_from("<II", raw, offset)
+        if offset + 8 + size > length:
+            raise _unreadable(path, f"a chunk of {size} bytes runs past the file's end")
+        chunk = raw[offset + 8 : offset + 8 + size]
+        if kind == _CHUNK_JSON and doc is None:
+            doc = _json(chunk, path)
+        elif kind == _CHUNK_BIN and not bin_chunk:
+            bin_chunk = chunk
+        offset += 8 + size
+    if doc is None:
+        raise _unreadable(path, "no JSON chunk")
+    return doc, bin_chunk
+
+
+def _load(path: Path) -> tuple[dict, _Buffers]:
+    """The glTF JSON and its buffers' bytes, from a GLB or a ``.gltf`` (data URIs, files beside).
+
+    The buffers come as a list whose ``decode_left`` is :data:`MAX_DECODED_BYTES`, the most
+    :func:`_accessor` decodes from them in all.
+    """
     raw = path.read_bytes()
     if raw[:4] == b"glTF":
-        if len(raw) < 20:
-            raise _unreadable(path, "truncated GLB header")
-        _magic, version, length = struct.unpack_from("<III", raw, 0)
-        if version != 2 or length > len(raw):
-            raise _unreadable(path, f"GLB version {version} or length {length} not readable")
-        offset, doc, bin_chunk = 12, None, b""
-        while offset + 8 <= length:
-            size, kind = struct.unpack_from("<II", raw, offset)
-            chunk = raw[offset + 8 : offset + 8 + size]
-            if kind == _CHUNK_JSON:
-                doc = json.loads(chunk.decode("utf-8"))
-            elif kind == _CHUNK_BIN:
-                bin_chunk = chunk
-            offset += 8 + size
-        if doc is None:
-            raise _unreadable(path, "no JSON chunk")
+        doc, bin_chunk = _glb_chunks(raw, path)
     else:
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            raise _unreadable(path, "neither GLB nor glTF JSON") from None
-        bin_chunk = b""
-    buffers = []
+        doc, bin_chunk = _json(raw, path), b""
+    buffers = _Buffers()
+    buffers.decode_left = MAX_DECODED_BYTES
     for k, buf in enumerate(doc.get("buffers", [])):
         uri = buf.get("uri")
         if uri is None:
             buffers.append(bin_chunk)
+        elif not isinstance(uri, str):
+            raise _unreadable(path, f"buffer {k} has a uri that is not text")
         elif uri.startswith("data:"):
             buffers.append(base64.b64decode(uri.split(",", 1)[1]))
         else:
             beside = (path.parent / uri).resolve()
             if beside.parent != path.parent.resolve() or not beside.is_file():
-                raise _unreadable(path, f"buffer {k} refers to {uri!r}, which is not beside it")
+                raise _unreadable(path, f"buffer {k} refers to a file that is not beside it")
             buffers.append(beside.read_bytes())
     return doc, buffers
 
 
-def _accessor(doc: dict, buffers: list[bytes], k: int, path: Path) -> np.ndarray:
-    acc = doc["accessors"][k]
+def _count(value, what: str, path: Path) -> int:
+    """A non-negative integer of the JSON (not a bool, a float or text)."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise _unreadable(path, f"{what} is not a non-negative integer")
+    return value
+
+
+def _accessor(doc: dict, buffers: _Buffers, k: int, path: Path) -> np.ndarray:
+    """Accessor ``k`` as a ``(count, width)`` array. Its byte stride, offsets and count are
+    checked against its buffer view and the buffer's real size, and its size against what the
+    file may still decode (``buffers.decode_left``), before anything is allocated."""
+    from dancegraph.motion.rig import RigError
+
+    acc = doc["accessors"][_count(k, "an accessor index", path)]
     if "sparse" in acc:
         raise _unreadable(path, f"accessor {k} is sparse (not supported)")
     dtype = np.dtype(_COMPONENTS[acc["componentType"]])
     width = _WIDTH[acc["type"]]
-    count = int(acc["count"])
+    count = _count(acc["count"], f"accessor {k}'s count", path)
+    elem = dtype.itemsize * width
+    if count * elem > buffers.decode_left:
+        raise RigError(
+            f"{path.name}: accessor {k} would decode {count * elem} bytes, more than the "
+            f"{MAX_DECODED_BYTES} a rig file may",
+            code="rig_too_complex",
+            field=path.name,
+        )
+    buffers.decode_left -= count * elem
     if "bufferView" not in acc:
         return np.zeros((count, width), dtype=dtype)
-    view = doc["bufferViews"][acc["bufferView"]]
-    data = buffers[view["buffer"]]
-    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
-    stride = view.get("byteStride") or dtype.itemsize * width
-    need = start + stride * (count - 1) + dtype.itemsize * width if count else start
-    if need > len(data):
-        raise _unreadable(path, f"accessor {k} runs past its buffer")
+    view = doc["bufferViews"][_count(acc["bufferView"], "a buffer view index", path)]
+    data = buffers[_count(view["buffer"], "a buffer index", path)]
+    view_start = _count(view.get("byteOffset", 0), "a byteOffset", path)
+    view_length = _count(view["byteLength"], "a byteLength", path)
+    start = view_start + _count(acc.get("byteOffset", 0), "a byteOffset", path)
+    stride = view.get("byteStride", elem)
+    if not isinstance(stride, int) or isinstance(stride, bool) or not elem <= stride <= 252:
+        raise _unreadable(path, f"accessor {k}'s byteStride is not in [{elem}, 252]")
+    need = start + stride * (count - 1) + elem if count else start
+    if view_start + view_length > len(data) or need > view_start + view_length:
+        raise _unreadable(path, f"accessor {k} runs past its buffer view or buffer")
     rows = np.lib.stride_tricks.as_strided(
         np.frombuffer(data, dtype=np.uint8, count=len(data) - start, offset=start),
-        shape=(count, dtype.itemsize * width),
+        shape=(count, elem),
         strides=(stride, 1),
+        writeable=False,
     )
     out = np.ascontiguousarray(rows).view(dtype).reshape(count, width)
     if acc.get("normalized") and dtype.kind in "iu":
@@ -124,6 +188,68 @@ def _local_matrix(node: dict) -> np.ndarray:
     return m
 
 
+def _node_parents(nodes, path: Path) -> dict[int, int]:
+    """Each child node's parent. Refuses (before any walk) a node list past :data:`MAX_NODES`,
+    a child index out of range, a node with two parents, a cycle and a nesting deeper than
+    ``bvh.MAX_DEPTH``; the walk is iterative."""
+    from dancegraph.motion.bvh import MAX_DEPTH
+    from dancegraph.motion.rig import RigError
+
+    if not isinstance(nodes, list):
+        raise _unreadable(path, "nodes is not a list")
+    if len(nodes) > MAX_NODES:
+        raise RigError(
+            f"{path.name}: more than {MAX_NODES} nodes", code="rig_too_complex", field=path.name
+        )
+    parent_of: dict[int, int] = {}
+    for i, n in enumerate(nodes):
+        for c in n.get("children", []):
+            if not isinstance(c, int) or isinstance(c, bool) or not 0 <= c < len(nodes):
+                raise _unreadable(path, f"node {i} has a child that is not a node index")
+            if c in parent_of or c == i:
+                raise _unreadable(path, f"node {c} has two parents or is its own child")
+            parent_of[c] = i
+    depth: dict[int, int] = {}
+    for i in range(len(nodes)):
+        chain, a = [], i
+        while a not in depth and a in parent_of:
+            chain.append(a)
+            a = parent_of[a]
+            if len(chain) > len(nodes):
+                raise _unreadable(path, f"the nodes above node {i} form a cycle")
+        base = depth.get(a, 0)
+        for k, j in enumerate(reversed(chain), start=1):
+            depth[j] = base + k
+        if base + len(chain) > MAX_DEPTH:
+            raise RigError(
+                f"{path.name}: nodes nested more than {MAX_DEPTH} deep",
+                code="rig_too_complex",
+                field=path.name,
+            )
+    return parent_of
+
+
+def _check_skins(skins, n_nodes: int, path: Path) -> None:
+    """Each skin names at most ``bvh.MAX_JOINTS`` distinct nodes that exist."""
+    from dancegraph.motion.bvh import MAX_JOINTS
+    from dancegraph.motion.rig import RigError
+
+    for s, skin in enumerate(skins):
+        joints = skin["joints"]
+        if len(joints) > MAX_JOINTS:
+            raise RigError(
+                f"{path.name}: skin {s} has more than {MAX_JOINTS} joints",
+                code="rig_too_complex",
+                field=path.name,
+            )
+        if any(
+            not isinstance(j, int) or isinstance(j, bool) or not 0 <= j < n_nodes for j in joints
+        ):
+            raise _unreadable(path, f"skin {s} names a joint that is not a node index")
+        if len(set(joints)) != len(joints):
+            raise _unreadable(path, f"skin {s} names a joint twice")
+
+
 def read_gltf_rig(path: str | Path):
     """``(names, parents (J,), bind (J, 4, 4), RigMesh | None)`` of a GLB/glTF file (metres, Y up)."""
     from dancegraph.motion.rig import RigMesh
@@ -132,10 +258,8 @@ def read_gltf_rig(path: str | Path):
     try:
         doc, buffers = _load(path)
         nodes = doc.get("nodes", [])
-        parent_of = {}
-        for i, n in enumerate(nodes):
-            for c in n.get("children", []):
-                parent_of[c] = i
+        parent_of = _node_parents(nodes, path)
+        _check_skins(doc.get("skins", []), len(nodes), path)
         world: dict[int, np.ndarray] = {}
 
         def world_of(i: int) -> np.ndarray:
@@ -189,14 +313,24 @@ def read_gltf_rig(path: str | Path):
                     idx = np.arange(len(pos))
                 jts = _accessor(doc, buffers, attrs["JOINTS_0"], path).astype(np.int64)
                 wts = _accessor(doc, buffers, attrs["WEIGHTS_0"], path).astype(float)
+                _check_primitive(pos, idx, jts, wts, path)
                 lookup = np.array([index[j] for j in skin_joints])
                 pos_all.append(pos)
                 tri_all.append(idx.reshape(-1, 3) + base)
                 jnt_all.append(lookup[np.clip(jts, 0, len(lookup) - 1)])
                 wgt_all.append(wts / np.maximum(wts.sum(axis=1, keepdims=True), 1e-12))
                 base += len(pos)
-    except (KeyError, IndexError, TypeError, ValueError, np.linalg.LinAlgError) as exc:
-        raise _unreadable(path, f"malformed glTF ({type(exc).__name__}: {exc})") from None
+    except (
+        KeyError,
+        IndexError,
+        TypeError,
+        ValueError,
+        AttributeError,
+        np.linalg.LinAlgError,
+    ) as exc:
+        raise _unreadable(
+            path, f"malformed glTF ({type(exc).__name__}: {str(exc)[:100]})"
+        ) from None
     mesh = None
     if pos_all:
         mesh = RigMesh(
@@ -206,6 +340,17 @@ def read_gltf_rig(path: str | Path):
             weights=np.concatenate(wgt_all),
         )
     return names, np.array(parents, dtype=np.int64), mats, mesh
+
+
+def _check_primitive(pos, idx, jts, wts, path: Path) -> None:
+    """A skinned primitive whose attributes agree: one joint and weight row per finite vertex,
+    whole triangles, every index a vertex."""
+    if not (len(jts) == len(wts) == len(pos)) or len(idx) % 3:
+        raise _unreadable(path, "a skinned primitive's attributes disagree in length")
+    if idx.size and (idx.min() < 0 or idx.max() >= len(pos)):
+        raise _unreadable(path, "a triangle names a vertex that is not there")
+    if not (np.isfinite(pos).all() and np.isfinite(wts).all()):
+        raise _unreadable(path, "a skinned mesh holds NaN or infinite values")
 
 
 class _Builder:

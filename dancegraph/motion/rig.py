@@ -30,6 +30,7 @@ import numpy as np
 
 from dancegraph.errors import DanceGraphError
 from dancegraph.motion import quat
+from dancegraph.motion.bvh import MAX_DEPTH, MAX_JOINTS
 from dancegraph.motion.skeleton import CANONICAL_JOINTS, Skeleton
 
 SIDES = ("left", "right")
@@ -89,6 +90,58 @@ class RigError(DanceGraphError):
 
     code = "rig_invalid"
     status = 422
+
+
+#: Longest joint name (characters); names are stored and echoed, so they are bounded.
+MAX_NAME_CHARS = 255
+
+
+def name_problem(name: object) -> str | None:
+    """Why ``name`` cannot be a joint name (not text, empty, longer than
+    :data:`MAX_NAME_CHARS`, a control character such as NUL, a lone surrogate), or None."""
+    if not isinstance(name, str) or not name:
+        return "is not a non-empty text"
+    if len(name) > MAX_NAME_CHARS:
+        return f"is longer than {MAX_NAME_CHARS} characters"
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "holds a control character (such as NUL)"
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return "holds a lone surrogate"
+    return None
+
+
+def check_hierarchy(names: list, parents: np.ndarray) -> None:
+    """Refuse joints a rig cannot have, before anything walks them.
+
+    At most :data:`MAX_JOINTS` joints nested at most :data:`MAX_DEPTH` deep
+    (``rig_too_complex``); every name valid (:func:`name_problem`, ``rig_name_invalid``); every
+    parent an index or -1, and no cycle (``rig_unreadable``). One pass, no recursion.
+    """
+    n = len(names)
+    if n > MAX_JOINTS:
+        raise RigError(f"more than {MAX_JOINTS} joints", code="rig_too_complex")
+    for j, name in enumerate(names):
+        why = name_problem(name)
+        if why is not None:
+            raise RigError(f"joint {j}'s name {why}", code="rig_name_invalid", field=f"joint {j}")
+    parents = np.asarray(parents, dtype=np.int64)
+    if len(parents) != n or ((parents < -1) | (parents >= n)).any():
+        raise RigError("a joint's parent is not a joint", code="rig_unreadable")
+    depth = np.full(n, -1, dtype=np.int64)
+    for j in range(n):
+        chain, a = [], j
+        while a >= 0 and depth[a] < 0:
+            chain.append(a)
+            a = int(parents[a])
+            if len(chain) > n:
+                raise RigError("the joints' parents form a cycle", code="rig_unreadable")
+        base = -1 if a < 0 else int(depth[a])
+        for k, i in enumerate(reversed(chain), start=1):
+            depth[i] = base + k
+        if base + len(chain) >= MAX_DEPTH:
+            raise RigError(f"joints nested more than {MAX_DEPTH} deep", code="rig_too_complex")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -533,9 +586,11 @@ def read_mapping(path: str | Path) -> dict[str, str]:
             data = yaml.safe_load(text)
         else:
             data = json.loads(text)
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:
         raise RigError(
-            f"{path}: not a JSON/YAML mapping ({exc})", code="rig_map_invalid", field=str(path)
+            f"{path}: not a JSON/YAML mapping ({str(exc)[:100]})",
+            code="rig_map_invalid",
+            field=str(path),
         ) from None
     return check_mapping(data)
 
@@ -548,13 +603,17 @@ def check_mapping(data) -> dict[str, str]:
     for role, joint in data.items():
         if role not in ROLES:
             raise RigError(
-                f"unknown role {role!r} in the mapping (roles: {', '.join(ROLES[:22])}, ...)",
+                f"unknown role {str(role)[:40]!r} in the mapping (roles: "
+                f"{', '.join(ROLES[:22])}, ...)",
                 code="rig_map_invalid",
-                field=str(role),
+                field=str(role)[:40],
             )
-        if not isinstance(joint, str) or not joint:
+        why = name_problem(joint)
+        if why is not None:
             raise RigError(
-                f"mapping[{role!r}] must be a joint name", code="rig_map_invalid", field=role
+                f"mapping[{role!r}] must be a joint name: it {why}",
+                code="rig_map_invalid",
+                field=role,
             )
         out[role] = joint
     return out
@@ -769,6 +828,7 @@ def build_rig(
     bind_world = np.asarray(bind_world, dtype=float)
     if not names:
         raise RigError("the file holds no armature (no joints)", code="rig_no_armature")
+    check_hierarchy(names, parents)
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise RigError(f"two joints are named {dup!r}", code="rig_duplicate_joint", field=dup)
@@ -967,6 +1027,29 @@ def _bvh_unit_scale(height: float) -> float:
     )
 
 
+def _bvh_skeleton(path: Path) -> Skeleton:
+    """A BVH rig's hierarchy (its frames are not read); the reader's errors as ``RigError``
+    (``rig_too_complex`` past its limits, else ``rig_unreadable``) naming the file, not its
+    folder."""
+    from dancegraph.errors import MotionFileError
+    from dancegraph.motion.bvh import read_bvh_skeleton
+
+    try:
+        return read_bvh_skeleton(path)
+    except MotionFileError as exc:
+        where = exc.path if exc.line is None else f"{exc.path}:{exc.line}"
+        why = exc.message.removeprefix(f"{where}: ")
+        line = "" if exc.line is None else f":{exc.line}"
+        code = "rig_too_complex" if exc.code == "bvh_too_complex" else "rig_unreadable"
+        raise RigError(f"{path.name}{line}: {why}", code=code, field=path.name) from None
+
+
+def rig_summary(path: str | Path, mapping: dict[str, str] | None = None) -> dict:
+    """:meth:`Rig.summary` of the rig file at ``path`` (what an upload keeps): the function a
+    sandboxed child runs, so the mesh never travels back."""
+    return load_rig(path, mapping=mapping).summary()
+
+
 def load_rig(
     path: str | Path,
     *,
@@ -989,17 +1072,10 @@ def load_rig(
             field=path.name,
         )
     if not path.is_file():
-        raise RigError(f"no such file {path}", code="rig_unreadable", field=path.name)
+        raise RigError(f"no such file {path.name}", code="rig_unreadable", field=path.name)
     source = {"format": suffix.lstrip(".").replace("gltf", "glb"), "file": path.name}
     if suffix == ".bvh":
-        from dancegraph.errors import MotionFileError
-        from dancegraph.motion.bvh import read_bvh
-
-        try:
-            motion = read_bvh(path)
-        except MotionFileError as exc:
-            raise RigError(exc.message, code="rig_unreadable", field=path.name) from None
-        sk = motion.skeleton
+        sk = _bvh_skeleton(path)
         pos = np.zeros((sk.n_joints, 3))
         for j in range(sk.n_joints):
             p = sk.parents[j]

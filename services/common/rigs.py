@@ -2,8 +2,12 @@
 
 A rig is validated when it arrives (``dancegraph.motion.rig.load_rig``: the file is read, its
 humanoid roles found), so a bad rig is a 4xx at ``POST /v1/rigs`` with the library's code and
-never a failed job later. The file is kept in the object store under
-``rigs/<tenant>/<rig id>/rig.<fmt>``; the row keeps the user's mapping and the summary.
+never a failed job later. The API process never parses a rig file: the upload is streamed to
+scratch and parsed in a sandboxed child (``dancegraph.sandbox``, limits from
+``Settings.rig_parse_*``), which hands back only the summary; a crash, a limit or a timeout
+there is a 422 (``rig_unreadable``, ``rig_too_complex``). The file is kept in the object store
+under ``rigs/<tenant>/<rig id>/rig.<fmt>`` only once it passed, and is removed again when the
+row cannot be written; the row keeps the user's mapping and the summary.
 """
 
 from __future__ import annotations
@@ -15,10 +19,20 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from dancegraph.motion.rig import RIG_SUFFIXES, Rig, RigError, check_mapping, load_rig
+from dancegraph.motion.rig import (
+    RIG_SUFFIXES,
+    Rig,
+    RigError,
+    check_mapping,
+    load_rig,
+    name_problem,
+    rig_summary,
+)
+from dancegraph.sandbox import SandboxError, SandboxLimits, run_sandboxed
 from dancegraph.store import ObjectStore, file_sha256
 from services.common.problems import ApiError
 from services.common.uploads import FilePart
+from services.config import Settings, get_settings
 from services.models import Rig as RigRow
 from services.models import new_id
 
@@ -39,19 +53,50 @@ def parse_mapping(raw: str | bytes | None) -> dict[str, str]:
         data = json.loads(raw)
     except ValueError as exc:
         raise ApiError(
-            422, "rig_map_invalid", f"mapping is not JSON: {exc}", field="mapping"
+            422, "rig_map_invalid", f"mapping is not JSON: {str(exc)[:100]}", field="mapping"
+        ) from None
+    except RecursionError:
+        raise ApiError(
+            422, "rig_map_invalid", "mapping is nested too deep", field="mapping"
         ) from None
     return check_mapping(data)
 
 
+def rig_limits(settings: Settings) -> SandboxLimits:
+    """The sandbox limits of parsing one rig file (``Settings.rig_parse_*``)."""
+    return SandboxLimits(
+        memory_bytes=settings.rig_parse_memory_bytes,
+        cpu_seconds=settings.rig_parse_cpu_s,
+        wall_seconds=settings.rig_parse_wall_s,
+    )
+
+
+def _sandboxed(fn, path: Path, mapping: dict[str, str] | None, limits: SandboxLimits):
+    """``fn(path, mapping)`` in the sandbox; its failures as ``RigError`` (422):
+    ``rig_too_complex`` past a limit, ``rig_unreadable`` for a crash."""
+    try:
+        return run_sandboxed(fn, str(path), mapping=mapping or None, limits=limits)
+    except SandboxError as exc:
+        code = "rig_unreadable" if exc.code == "crashed" else "rig_too_complex"
+        raise RigError(f"{path.name}: {exc.message}", code=code, field="rig") from None
+
+
 def register_rig(
-    session: Session, store: ObjectStore, tenant_id: str, part: FilePart, mapping: dict[str, str]
+    session: Session,
+    store: ObjectStore,
+    tenant_id: str,
+    part: FilePart,
+    mapping: dict[str, str],
+    limits: SandboxLimits,
 ) -> RigRow:
-    """Check an uploaded rig file (its name's suffix says the format) and store it; the new row.
+    """Check an uploaded rig file (its name's suffix says the format) in the sandbox under
+    ``limits`` and store it; the new row (flushed; the caller commits, and removes the file
+    with :func:`discard_rig_file` should the commit fail).
 
     Raises ``ApiError`` 415 ``rig_format`` for a suffix other than .fbx/.glb/.gltf/.bvh, and the
-    library's ``RigError`` (422: ``rig_unreadable``, ``rig_no_armature``, ``rig_missing_roles``
-    naming the roles, ``rig_disconnected``, ``rig_zero_length``, ``rig_map_invalid``, ...).
+    library's ``RigError`` (422: ``rig_unreadable``, ``rig_too_complex``, ``rig_name_invalid``,
+    ``rig_no_armature``, ``rig_missing_roles`` naming the roles, ``rig_disconnected``,
+    ``rig_zero_length``, ``rig_map_invalid``, ...).
     """
     suffix = Path(part.filename or "").suffix.lower()
     if suffix not in RIG_SUFFIXES:
@@ -63,31 +108,44 @@ def register_rig(
         )
     fmt = "glb" if suffix == ".gltf" else suffix.lstrip(".")
     if suffix == ".gltf":
-        suffix = ".glb" if part.path.read_bytes()[:4] == b"glTF" else ".gltf"
+        with open(part.path, "rb") as fh:
+            suffix = ".glb" if fh.read(4) == b"glTF" else ".gltf"
+    filename = part.filename or ""
+    if name_problem(filename) is not None:
+        filename = f"rig{suffix}"  # a name the database could not hold: keep none
     tmp = store.temp_dir("rig")
     try:
         named = Path(tmp) / f"rig{suffix}"
         shutil.copyfile(part.path, named)
-        rig = load_rig(named, mapping=mapping or None)  # RigError → 422 with its code
+        summary = _sandboxed(rig_summary, named, mapping, limits)  # RigError → 422
         rig_id = new_id()
         key = rig_key(tenant_id, rig_id, suffix.lstrip("."))
-        store.put_file(key, named)
         row = RigRow(
             id=rig_id,
             tenant_id=tenant_id,
-            filename=(part.filename or f"rig{suffix}")[:255],
+            filename=filename,
             format=fmt,
             file_key=key,
             sha256=file_sha256(named),
             size_bytes=named.stat().st_size,
             mapping=dict(mapping),
-            summary=rig.summary(),
+            summary=summary,
         )
+        try:
+            store.put_file(key, named)
+            session.add(row)
+            session.flush()
+        except BaseException:
+            discard_rig_file(store, key)
+            raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    session.add(row)
-    session.flush()
     return row
+
+
+def discard_rig_file(store: ObjectStore, key: str) -> None:
+    """Remove a rig's stored file whose row could not be written."""
+    store.delete_prefix(key.rsplit("/", 1)[0])
 
 
 def find_rig(session: Session, tenant_id: str, rig_id: str) -> RigRow | None:
@@ -109,14 +167,16 @@ def delete_rig(session: Session, store: ObjectStore, row: RigRow) -> None:
 
 
 def load_stored_rig(store: ObjectStore, row: RigRow) -> tuple[Rig, Path]:
-    """The stored rig, loaded with its mapping, and its file's path (FBX output poses that file)."""
+    """The stored rig, loaded with its mapping in the sandbox (``Settings.rig_parse_*``), and
+    its file's path (FBX output poses that file)."""
     try:
         path = store.local_path(row.file_key)
     except FileNotFoundError:
         raise RigError(
             f"rig {row.id} has no file any more", code="unknown_rig", field="rig"
         ) from None
-    return load_rig(path, mapping=dict(row.mapping) or None), path
+    limits = rig_limits(get_settings())
+    return _sandboxed(load_rig, path, dict(row.mapping), limits), path
 
 
 def _job_rig(

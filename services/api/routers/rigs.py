@@ -74,9 +74,18 @@ def _upload(settings: Settings, store: ObjectStore, tenant_id: str, form) -> Rig
     if raw is None and files:
         raw = files[0].read_text(rigs.MAX_MAPPING_BYTES + 1)
     mapping = rigs.parse_mapping(raw)
-    with session_scope(settings.database_url) as session:
-        row = rigs.register_rig(session, store, tenant_id, parts[0], mapping)
-        return rig_out(row)
+    limits = rigs.rig_limits(settings)
+    key = None
+    try:
+        with session_scope(settings.database_url) as session:
+            row = rigs.register_rig(session, store, tenant_id, parts[0], mapping, limits)
+            key = row.file_key
+            out = rig_out(row)
+    except BaseException:
+        if key is not None:  # stored, but the row was not committed
+            rigs.discard_rig_file(store, key)
+        raise
+    return out
 
 
 @router.post(
