@@ -370,7 +370,9 @@ def _add_retarget(sub) -> None:
     )
     p.add_argument("source", help="the dance, a BVH file (e.g. a synthesize result)")
     p.add_argument("--rig", required=True, help="the target rig: .fbx, .glb/.gltf or .bvh")
-    p.add_argument("--out", required=True, help="the file to write: .bvh, .fbx or .glb")
+    p.add_argument(
+        "--out", required=True, help="the file to write: .bvh, .fbx, .glb or .usd/.usda/.usdc"
+    )
     p.add_argument("--map", default=None, help="joint mapping, JSON/YAML: role -> joint name")
     p.add_argument("--fps", type=float, default=None, help="source frame rate (default: header)")
     p.add_argument("--scale", type=float, default=1.0, help="source file units to metres")

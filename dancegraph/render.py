@@ -17,6 +17,8 @@ Files in ``out_dir``:
 - ``alternatives/<k>.bvh`` — the dataset's skeleton, metres, ``spec.output.fps``;
 - ``alternatives/<k>.fbx`` — when ``"fbx"`` is in ``spec.output.formats`` (through Blender:
   ``dancegraph.motion.fbx``);
+- ``alternatives/<k>.usd`` — when ``"usd"`` is in ``spec.output.formats`` (UsdSkel, metres, Y
+  up: ``dancegraph.motion.usd``);
 - ``timeline.json`` — the song's bars and phrases, per alternative the chosen node per bar with
   its cost breakdown and provenance (source take, frame range, augmentation), foot-skate and stage
   reports, and the provenance of the whole result: dataset name, version and licence, graph build
@@ -413,9 +415,15 @@ def render(
             fbx_rel = f"alternatives/{k}.fbx"
             exporter.convert(out / bvh_rel, out / fbx_rel, fps=fps)
             entry_files["fbx"] = fbx_rel
-        if "bvh" not in formats:
+        if "bvh" not in formats and "bvh" in entry_files:
             (out / bvh_rel).unlink()
             del entry_files["bvh"]
+        if "usd" in formats:
+            from dancegraph.motion.usd import write_usd
+
+            usd_rel = f"alternatives/{k}.usd"
+            write_usd(dance, out / usd_rel)
+            entry_files["usd"] = usd_rel
         rig_report = None
         if on_rig is not None:
             rig_files, rig_report = on_rig(k, dance, out)

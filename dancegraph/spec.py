@@ -165,7 +165,7 @@ class MotifPin(_Strict):
     motif: int = Field(..., ge=0)
 
 
-Format = Literal["bvh", "fbx"]
+Format = Literal["bvh", "fbx", "usd"]
 
 
 def _all_formats() -> list[Format]:
@@ -195,7 +195,8 @@ class Output(_Strict):
         None,
         pattern=r"^[A-Za-z0-9-]{1,36}$",
         description="id of one of your rigs (POST /v1/rigs): each alternative is also written on "
-        "it as alternatives/<k>.rig.bvh and .rig.glb (and .rig.fbx when formats has fbx)",
+        "it as alternatives/<k>.rig.bvh and .rig.glb (and .rig.fbx / .rig.usd when formats has "
+        "fbx / usd)",
     )
 
 

@@ -303,6 +303,7 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
     armature.animation_data.action = action
     frames = np.arange(n_frames, dtype=float)
     keyed = 0
+    poses: dict[str, tuple] = {}  # bone → (rotation (F, 4) wxyz, location (F, 3) or None)
     for bone in bones:
         pb = armature.pose.bones[bone.name]
         pb.rotation_mode = "QUATERNION"
@@ -340,6 +341,9 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
             xf[:, :3, 3] = positions[:, index[bone.name]] - rg @ rest4[:3, 3]
             loc = (np.linalg.inv(rest4)[None] @ xf @ rest4[None])[:, :3, 3]
             curves += [(f'pose.bones["{bone.name}"].location', k, loc[:, k]) for k in range(3)]
+            poses[bone.name] = (basis, loc)
+        else:
+            poses[bone.name] = (basis, None)
         for data_path, k, values in curves:
             fc = action.fcurve_ensure_for_datablock(armature, data_path, index=k)
             fc.keyframe_points.add(n_frames)
@@ -358,15 +362,165 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
     scene.frame_start = 0
     scene.frame_end = n_frames - 1
     scene.frame_set(0)
+    to_world = to_y @ armature.matrix_world
+    first = {
+        name: list(to_world @ armature.pose.bones[name].head)
+        for name in names
+        if name in armature.pose.bones
+    }
     meshes = [ob for ob in scene.objects if ob.type == "MESH"]
-    export_fbx(fbx_path, {"ARMATURE", "MESH"})
+    table = bone_channels(armature, poses)
+    armature.animation_data.action = None  # the keys are in ``table``: no per-frame evaluation
+    try:
+        with baked_from(table):
+            export_fbx(fbx_path, {"ARMATURE", "MESH", "EMPTY"})
+    finally:
+        armature.animation_data.action = action
     return {
         "frames": n_frames,
         "fps": scene.render.fps / scene.render.fps_base,
         "joints": keyed,
         "meshes": len(meshes),
+        "first_frame": first,
         "seconds": round(time.perf_counter() - t0, 4),
     }
+
+
+def bone_channels(armature, poses: dict[str, tuple]) -> dict[str, tuple]:
+    """Every bone's FBX channels per frame, computed in bulk instead of baked frame by frame.
+
+    Blender's FBX exporter writes a bone's local transform as ``parent_pose⁻¹ · pose`` in
+    armature space, which is ``rest_rel · T(location) · R(rotation)`` (``rest_rel`` the bone's
+    rest matrix relative to its parent's); ``poses``: bone → (quaternions ``(F, 4)`` wxyz,
+    locations ``(F, 3)`` or None). Returns bone → (location, Euler XYZ radians continuous in
+    time, scale), each ``(F, 3)``, as the exporter's own bake gives them.
+    """
+    import numpy as np
+
+    names, moves, eulers, scales = [], [], [], []
+    for bone in armature.data.bones:
+        if bone.name not in poses:
+            continue
+        rot, loc = poses[bone.name]
+        rest = bone.matrix_local
+        if bone.parent is not None:
+            rest = bone.parent.matrix_local.inverted_safe() @ rest
+        rest = np.array(rest)
+        m = rest[None, :3, :3] @ _quat_matrices(np.asarray(rot, dtype=float))
+        moved = np.zeros((len(m), 3)) if loc is None else np.asarray(loc, dtype=float)
+        scale = np.linalg.norm(m, axis=1)
+        m = m / scale[:, None, :]
+        names.append(bone.name)
+        moves.append(moved @ rest[:3, :3].T + rest[:3, 3])
+        scales.append(scale)
+        eulers.append(  # Blender's XYZ order: R = Rz · Ry · Rx
+            np.stack(
+                [
+                    np.arctan2(m[:, 2, 1], m[:, 2, 2]),
+                    np.arcsin(np.clip(-m[:, 2, 0], -1.0, 1.0)),
+                    np.arctan2(m[:, 1, 0], m[:, 0, 0]),
+                ],
+                axis=1,
+            )
+        )
+    if not names:
+        return {}
+    smooth = _euler_continuous(np.stack(eulers, axis=1))
+    return {n: (moves[k], smooth[:, k], scales[k]) for k, n in enumerate(names)}
+
+
+def _quat_matrices(q):
+    """``(F, 3, 3)`` rotation matrices of unit quaternions ``(F, 4)`` (w, x, y, z)."""
+    import numpy as np
+
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
+def _euler_continuous(e):
+    """``(F, B, 3)`` XYZ Euler angles, each frame's the equivalent nearest the previous frame's
+    (the other solution ``(x + π, π - y, z + π)`` and whole turns), as Blender's compat does."""
+    import numpy as np
+
+    turn = 2 * np.pi
+    alt = np.stack([e[..., 0] + np.pi, np.pi - e[..., 1], e[..., 2] + np.pi], axis=-1)
+    out = e.copy()
+    for f in range(1, len(e)):
+        prev = out[f - 1]
+        a = e[f] + turn * np.round((prev - e[f]) / turn)
+        b = alt[f] + turn * np.round((prev - alt[f]) / turn)
+        use_b = np.abs(b - prev).sum(axis=-1) < np.abs(a - prev).sum(axis=-1)
+        out[f] = np.where(use_b[:, None], b, a)
+    return out
+
+
+class baked_from:
+    """While exporting: the FBX exporter's per-frame sampling (its ``frame_values_gen``, which
+    sets every frame and decomposes every object's matrix) is answered from ``table`` (see
+    :func:`bone_channels`) for the bones in it and each other object's one transform (they do
+    not move). Only the numpy its module sees is swapped; Blender's code runs unchanged, and a
+    scene with shape keys, cameras or animated instances is sampled by the exporter itself.
+    """
+
+    def __init__(self, table: dict[str, tuple]) -> None:
+        self.table = table
+
+    def __enter__(self):
+        from io_scene_fbx import export_fbx_bin
+
+        self._module, self._numpy = export_fbx_bin, export_fbx_bin.np
+        export_fbx_bin.np = _NumpyFromTable(self._numpy, self.table)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._module.np = self._numpy
+
+
+class _NumpyFromTable:
+    """numpy, except ``fromiter`` on the exporter's frame sampler, which reads the table."""
+
+    def __init__(self, numpy, table: dict[str, tuple]) -> None:
+        self._np, self._table = numpy, table
+
+    def __getattr__(self, name: str):
+        return getattr(self._np, name)
+
+    def fromiter(self, values, dtype=float, count=-1):
+        known = (
+            self._sampled(values) if getattr(values, "__name__", "") == "frame_values_gen" else None
+        )
+        return known if known is not None else self._np.fromiter(values, dtype=dtype, count=count)
+
+    def _sampled(self, gen):
+        """The sampler's values ``(F · 9 · objects,)`` from the table, or None to let it run."""
+        np = self._np
+        scope = gen.gi_frame.f_locals  # the sampler's closure: what it would have sampled
+        objects, frames = scope.get("animdata_ob"), scope.get("currframes")
+        if objects is None or frames is None or scope.get("has_animated_duplis", True):
+            return None
+        if scope.get("animdata_shapes") or scope.get("animdata_cameras"):
+            return None
+        scene_data = scope["scene_data"]
+        start = scene_data.scene.frame_start
+        index = frames.astype(int) - start
+        columns = []
+        for ob in objects:
+            if ob.is_bone and ob.bdata.name in self._table:
+                loc, rot, scale = self._table[ob.bdata.name]
+                columns.append(np.concatenate([loc, rot, scale], axis=1)[index])
+            else:
+                loc, rot, scale, _m, _mr = ob.fbx_object_tx(scene_data)
+                row = np.array([*loc, *rot, *scale], dtype=float)
+                columns.append(np.broadcast_to(row, (len(index), 9)))
+        gen.close()
+        return np.concatenate(columns, axis=1).ravel() if columns else np.zeros(0)
 
 
 def _short_error(exc: Exception) -> str:

@@ -284,7 +284,8 @@ class FbxExporter:
             raise FbxError(
                 f"FBX export on the rig {Path(rig_path).name} failed: {reply.get('error')}"
             )
-        return {k: reply[k] for k in ("frames", "fps", "joints", "meshes", "seconds") if k in reply}
+        keys = ("frames", "fps", "joints", "meshes", "first_frame", "seconds")
+        return {k: reply[k] for k in keys if k in reply}
 
 
 def _pump(stream, sink, mark_end: bool) -> None:

@@ -1,15 +1,17 @@
 """glTF 2.0 in and out: a rig's joints and skinned mesh from GLB/glTF, a dance on a rig as GLB.
 
 Reading (:func:`read_gltf_rig`): the joints are every skin's joints (their bind pose is the
-inverse of the inverse-bind matrices), or every node that holds no mesh when the file has no
-skin (bind pose: the nodes' own transforms); the mesh is each skinned primitive's triangles with
+inverse of the inverse-bind matrices, taken from the skin's bind space into the world: see
+:func:`_skin_space`), or every node that holds no mesh when the file has no skin (bind pose: the
+nodes' own transforms); the nodes above the skeleton are kept as its ancestors; the mesh is each skinned primitive's triangles with
 ``JOINTS_0``/``WEIGHTS_0``. glTF is metres and Y up by definition. Sparse accessors and external
 buffers other than files beside a ``.gltf`` are refused (``rig_unreadable``).
 
-Writing (:func:`write_glb`): one node per rig joint (translation and rotation in the joint's own
-bind frame), one linear animation (every joint's rotation, the root's translation, one key per
-frame) and, when the rig has a mesh, that mesh skinned to the joints, so the character itself
-dances in any glTF viewer or DCC tool.
+Writing (:func:`write_glb`): the rig's ancestor nodes (its file's nodes above the skeleton, as
+matrices), under them one node per rig joint (translation and rotation in the joint's own bind
+frame, in the ancestors' units), one linear animation (every joint's rotation, the root's
+translation, one key per frame) and, when the rig has a mesh, that mesh skinned to the joints,
+so the character itself dances in any glTF viewer or DCC tool, standing where it stood.
 """
 
 from __future__ import annotations
@@ -251,7 +253,12 @@ def _check_skins(skins, n_nodes: int, path: Path) -> None:
 
 
 def read_gltf_rig(path: str | Path):
-    """``(names, parents (J,), bind (J, 4, 4), RigMesh | None)`` of a GLB/glTF file (metres, Y up)."""
+    """``(names, parents (J,), bind (J, 4, 4), RigMesh | None, ancestors)`` of a GLB/glTF file.
+
+    Bind matrices and mesh are in the file's world (metres, Y up), parent nodes applied.
+    ``ancestors``: per top joint's name, the nodes above it from the scene root down, as
+    ``[(name, local (4, 4))]`` (how the skeleton is placed in the scene).
+    """
     from dancegraph.motion.rig import RigMesh
 
     path = Path(path)
@@ -271,15 +278,20 @@ def read_gltf_rig(path: str | Path):
 
         skins = doc.get("skins", [])
         bind: dict[int, np.ndarray] = {}
+        spaces = []  # per skin: its bind space (inverse-bind matrices, vertices) → world
         for skin in skins:
             ibm = None
+            space = np.eye(4)
             if "inverseBindMatrices" in skin:
                 ibm = _accessor(doc, buffers, skin["inverseBindMatrices"], path).astype(float)
+                ibm = ibm.reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
+                space = _skin_space(np.stack([world_of(j) for j in skin["joints"]]), ibm)
+            spaces.append(space)
             for k, j in enumerate(skin["joints"]):
                 if j in bind:
                     continue
                 if ibm is not None:
-                    bind[j] = np.linalg.inv(ibm[k].reshape(4, 4).T)
+                    bind[j] = space @ np.linalg.inv(ibm[k])
                 else:
                     bind[j] = world_of(j)
         if skins:
@@ -295,6 +307,14 @@ def read_gltf_rig(path: str | Path):
                 p = parent_of.get(p)
             parents.append(-1 if p is None else index[p])
         names = [nodes[j].get("name") or f"joint_{j}" for j in joint_nodes]
+        ancestors = {}
+        for j, p in zip(joint_nodes, parents, strict=True):
+            if p < 0:
+                chain, a = [], parent_of.get(j)
+                while a is not None:
+                    chain.append((nodes[a].get("name") or f"node_{a}", _local_matrix(nodes[a])))
+                    a = parent_of.get(a)
+                ancestors[nodes[j].get("name") or f"joint_{j}"] = chain[::-1]
         mats = np.stack([bind[j] for j in joint_nodes]) if joint_nodes else np.zeros((0, 4, 4))
 
         pos_all, tri_all, jnt_all, wgt_all, base = [], [], [], [], 0
@@ -307,6 +327,8 @@ def read_gltf_rig(path: str | Path):
                 if prim.get("mode", 4) != 4 or "JOINTS_0" not in attrs or "WEIGHTS_0" not in attrs:
                     continue
                 pos = _accessor(doc, buffers, attrs["POSITION"], path).astype(float)
+                space = spaces[node["skin"]]
+                pos = pos @ space[:3, :3].T + space[:3, 3]
                 if "indices" in prim:
                     idx = _accessor(doc, buffers, prim["indices"], path).astype(np.int64).ravel()
                 else:
@@ -339,7 +361,45 @@ def read_gltf_rig(path: str | Path):
             joints=np.concatenate(jnt_all),
             weights=np.concatenate(wgt_all),
         )
-    return names, np.array(parents, dtype=np.int64), mats, mesh
+    return names, np.array(parents, dtype=np.int64), mats, mesh, ancestors
+
+
+def node_worlds(path: str | Path) -> dict[str, np.ndarray]:
+    """Every named node's world matrix ``(4, 4)`` as the file places it (its static transforms:
+    in a GLB written by :func:`write_glb`, the dance's first frame). Raises ``RigError``
+    (``rig_unreadable``)."""
+    path = Path(path)
+    try:
+        doc, _ = _load(path)
+        nodes = doc.get("nodes", [])
+        out: dict[str, np.ndarray] = {}
+        stack = [(i, np.eye(4)) for i in doc["scenes"][doc.get("scene", 0)]["nodes"]]
+        while stack:
+            i, above = stack.pop()
+            world = above @ _local_matrix(nodes[i])
+            out.setdefault(nodes[i].get("name") or f"node_{i}", world)
+            stack.extend((c, world) for c in nodes[i].get("children", []))
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise _unreadable(path, f"malformed glTF ({type(exc).__name__}: {exc})") from None
+    return out
+
+
+def _skin_space(worlds: np.ndarray, ibm: np.ndarray) -> np.ndarray:
+    """The ``(4, 4)`` matrix taking a skin's bind space to the world.
+
+    glTF skins a vertex by ``world(joint) · ibm · v``, so the inverse-bind matrices and the
+    vertices may live in the world (``ibm`` = inverse world bind) or in an armature's own space
+    (a centimetre, Z-up export under a scaled, turned node). At the bind pose every joint gives
+    the same ``world · ibm``; the matrix most joints agree on wins (the identity on a tie, so a
+    file saved in another pose keeps reading its bind pose from ``ibm`` alone).
+    ``worlds``, ``ibm``: ``(J, 4, 4)``.
+    """
+    cands = worlds @ ibm
+    options = np.concatenate([np.eye(4)[None], cands])
+    size = np.maximum(1.0, np.abs(cands).max(axis=(1, 2)))
+    diff = np.abs(options[:, None] - cands[None]).max(axis=(2, 3))  # (1 + J, J)
+    votes = (diff <= 1e-4 * size[None]).sum(axis=1)
+    return options[int(np.argmax(votes))]
 
 
 def _check_primitive(pos, idx, jts, wts, path: Path) -> None:
@@ -399,36 +459,60 @@ def _vertex_normals(pos: np.ndarray, tris: np.ndarray) -> np.ndarray:
     return n
 
 
-def write_glb(motion, rig, path: str | Path) -> dict:
-    """Write ``motion`` (on ``rig.skeleton``, BVH convention, metres) as a GLB on the rig.
+def joint_locals(motion, rig) -> tuple[np.ndarray, np.ndarray, float]:
+    """A dance on a rig as its file's nodes carry it, under ``rig.ancestors``.
 
-    Returns ``{frames, joints, vertices, bytes}``. Written atomically (temporary file, rename).
+    ``motion``: on ``rig.skeleton`` (BVH convention, metres, the rig's world). Returns local
+    rotations ``(F, J, 4)`` of each joint's own bind frame (sign-continuous), local translations
+    ``(F, J, 3)`` in the ancestors' units (the root's moves, the others are their bind offsets)
+    and the ancestors' scale (metres per unit; they are assumed uniformly scaled). Shared by the
+    GLB and USD writers.
     """
     sk = rig.skeleton
-    n_joints = sk.n_joints
     rest = quat.normalize(np.asarray(rig.rest_rotations, dtype=float))
     _, g = fk_arrays(sk, motion.root_positions, motion.rotations)  # world deltas from bind
     world = quat.multiply(g, rest[None])  # each joint's own frame, per frame
+    top, top_q, sigma = _placement(rig)
     local = world.copy()
     parents = sk.parents
     nonroot = parents >= 0
     local[:, nonroot] = quat.multiply(quat.conjugate(world[:, parents[nonroot]]), world[:, nonroot])
+    local[:, 0] = quat.multiply(quat.conjugate(top_q)[None], world[:, 0])
     local = _continuous(quat.normalize(local))
-    translation = np.zeros((n_joints, 3))
-    translation[nonroot] = quat.rotate(quat.conjugate(rest[parents[nonroot]]), sk.offsets[nonroot])
-    root_rest = np.zeros(3)
-    root_rest[:] = sk.offsets[0]
+    moves = np.zeros((motion.n_frames, sk.n_joints, 3))
+    moves[:, nonroot] = quat.rotate(quat.conjugate(rest[parents[nonroot]]), sk.offsets[nonroot])
+    moves[:, 0] = _rotate_all(quat.conjugate(top_q), motion.root_positions - top[:3, 3])
+    return local, moves / sigma, sigma
+
+
+def write_glb(motion, rig, path: str | Path) -> dict:
+    """Write ``motion`` (on ``rig.skeleton``, BVH convention, metres) as a GLB on the rig.
+
+    The skeleton hangs from ``rig.ancestors`` (assumed uniformly scaled): its translations are
+    in their units. Returns ``{frames, joints, vertices, bytes}``. Written atomically
+    (temporary file, rename).
+    """
+    sk = rig.skeleton
+    n_joints = sk.n_joints
+    parents = sk.parents
+    rest = quat.normalize(np.asarray(rig.rest_rotations, dtype=float))
+    local, moves, sigma = joint_locals(motion, rig)
+    translation, root_path = moves[0], moves[:, 0]
     b = _Builder()
-    nodes = []
+    n_up = len(rig.ancestors)
+    nodes = [
+        {"name": name, "matrix": np.asarray(m, dtype=float).T.ravel().tolist(), "children": [k + 1]}
+        for k, (name, m) in enumerate(rig.ancestors)
+    ]
     for j in range(n_joints):
         node = {
             "name": sk.names[j],
-            "translation": (translation[j] if j else root_rest).tolist(),
+            "translation": (translation[j] if j else root_path[0]).tolist(),
             "rotation": local[0, j].tolist(),
         }
         kids = sk.children(j)
         if kids:
-            node["children"] = kids
+            node["children"] = [n_up + c for c in kids]
         nodes.append(node)
     times = (np.arange(motion.n_frames) / motion.fps).astype(np.float32)
     t_acc = b.add(times[:, None], "SCALAR", minmax=True)
@@ -436,10 +520,12 @@ def write_glb(motion, rig, path: str | Path) -> dict:
     for j in range(n_joints):
         out = b.add(local[:, j].astype(np.float32), "VEC4")
         samplers.append({"input": t_acc, "output": out, "interpolation": "LINEAR"})
-        channels.append({"sampler": len(samplers) - 1, "target": {"node": j, "path": "rotation"}})
-    out = b.add(motion.root_positions.astype(np.float32), "VEC3")
+        target = {"node": n_up + j, "path": "rotation"}
+        channels.append({"sampler": len(samplers) - 1, "target": target})
+    out = b.add(root_path.astype(np.float32), "VEC3")
     samplers.append({"input": t_acc, "output": out, "interpolation": "LINEAR"})
-    channels.append({"sampler": len(samplers) - 1, "target": {"node": 0, "path": "translation"}})
+    target = {"node": n_up, "path": "translation"}
+    channels.append({"sampler": len(samplers) - 1, "target": target})
     doc: dict = {
         "asset": {"version": "2.0", "generator": "DanceGraph"},
         "scene": 0,
@@ -454,7 +540,7 @@ def write_glb(motion, rig, path: str | Path) -> dict:
         bind = np.tile(np.eye(4), (n_joints, 1, 1))
         from scipy.spatial.transform import Rotation
 
-        bind[:, :3, :3] = Rotation.from_quat(rest).as_matrix()
+        bind[:, :3, :3] = Rotation.from_quat(rest).as_matrix() * sigma
         pos = np.zeros((n_joints, 3))
         for j in range(n_joints):
             pos[j] = sk.offsets[j] if parents[j] < 0 else pos[parents[j]] + sk.offsets[j]
@@ -474,8 +560,8 @@ def write_glb(motion, rig, path: str | Path) -> dict:
         ]
         doc["skins"] = [
             {
-                "joints": list(range(n_joints)),
-                "skeleton": 0,
+                "joints": list(range(n_up, n_up + n_joints)),
+                "skeleton": n_up,
                 "inverseBindMatrices": b.add(ibm.astype(np.float32), "MAT4"),
             }
         ]
@@ -499,6 +585,19 @@ def write_glb(motion, rig, path: str | Path) -> dict:
         fh.write(bytes(b.blob))
     tmp.replace(path)
     return {"frames": motion.n_frames, "joints": n_joints, "vertices": n_vertices, "bytes": total}
+
+
+def _placement(rig) -> tuple[np.ndarray, np.ndarray, float]:
+    """The skeleton's parent in the world: its ``(4, 4)`` matrix, rotation ``(4,)`` and scale."""
+    from scipy.spatial.transform import Rotation
+
+    top = rig.ancestors_world()
+    sigma = float(np.cbrt(abs(np.linalg.det(top[:3, :3])))) or 1.0
+    return top, Rotation.from_matrix(top[:3, :3] / sigma).as_quat(), sigma
+
+
+def _rotate_all(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return quat.rotate(np.broadcast_to(q, v.shape[:-1] + (4,)), v)
 
 
 def _continuous(q: np.ndarray) -> np.ndarray:

@@ -463,6 +463,12 @@ def retarget(
     report = retarget_report(plan, src_pos_c, src_g_c, pos, g, contacts, anchors, fps)
     report.update(extra_report)
     report["ratio"] = ratio
+    report["world"] = {  # the rig as it stands in its file: metres, world space
+        "height_m": round(rig.height(), 4),
+        "hip_height_m": round(float(_rest_positions(target)[plan.hips, 1] - plan.tgt_sole), 4),
+        "up_axis": rig.up_axis(),
+        "ancestors": [name for name, _ in rig.ancestors],
+    }
     report["cpu_seconds"] = round(time.process_time() - t0, 4)
     return motion, report
 
@@ -619,19 +625,27 @@ def retarget_report(
 
 
 #: Output formats of a dance on a rig, by file suffix.
-RIG_OUTPUTS = (".bvh", ".fbx", ".glb")
+RIG_OUTPUTS = (".bvh", ".fbx", ".glb", ".usd", ".usda", ".usdc")
+#: Largest relative difference of the written character's height from the dance's.
+HEIGHT_TOLERANCE = 0.10
+#: Largest angle (deg) between the written character's up and the dance's.
+UPRIGHT_TOLERANCE_DEG = 30.0
 
 
 def write_on_rig(
     motion: Motion, rig: Rig, rig_path: str | Path, out_path: str | Path, *, exporter=None
 ) -> dict:
-    """Write a retargeted ``motion`` (on ``rig.skeleton``) as BVH, FBX or GLB, by ``out_path``'s suffix.
+    """Write a retargeted ``motion`` (on ``rig.skeleton``) by ``out_path``'s suffix, then check it.
 
-    BVH: the rig's joints in its own units (a rig read from centimetres is written in
-    centimetres); GLB: :func:`~dancegraph.motion.gltf.write_glb` (with the skinned mesh);
-    FBX: the rig file ``rig_path`` itself posed in Blender (its own process, ``exporter`` or the
-    shared warm one), meshes included. Returns a small summary; raises ``DanceGraphError``
-    (``rig_output_format``) or ``FbxError``.
+    BVH: the rig's joints in its world axes and its own units (a rig read from centimetres is
+    written in centimetres); GLB: :func:`~dancegraph.motion.gltf.write_glb` and USD:
+    :func:`~dancegraph.motion.usd.write_usd` (the skeleton under the rig's ancestor nodes, with
+    the skinned mesh); FBX: the rig file ``rig_path`` itself posed in Blender (its own process,
+    ``exporter`` or the shared warm one), meshes included. The written first frame is read back
+    and compared with the dance (:func:`check_placement`); a misplaced file is removed. Returns a
+    small summary with ``placement``; raises ``DanceGraphError`` (``rig_output_format``),
+    ``RigError`` (``rig_output_scale``, ``rig_output_not_upright``, ``rig_output_floor``) or
+    ``FbxError``.
     """
     out = Path(out_path)
     suffix = out.suffix.lower()
@@ -642,17 +656,38 @@ def write_on_rig(
             field=out.name,
         )
     out.parent.mkdir(parents=True, exist_ok=True)
+    summary, first = _write(motion, rig, Path(rig_path), out, suffix, exporter)
+    try:
+        summary["placement"] = check_placement(rig, motion, first)
+    except DanceGraphError:
+        out.unlink(missing_ok=True)
+        raise
+    return summary
+
+
+def _write(motion: Motion, rig: Rig, rig_path: Path, out: Path, suffix: str, exporter):
+    """Write one file; returns its summary and its first frame's world joint positions
+    ``(J, 3)`` (metres, skeleton order) as read back from what was written."""
     if suffix == ".bvh":
-        from dancegraph.motion.bvh import write_bvh
+        from dancegraph.motion.bvh import read_bvh, write_bvh
 
         k = 1.0 / rig.unit_scale
         scaled = _mapped_offsets(motion.skeleton, lambda v: v * k)
         write_bvh(Motion(scaled, motion.fps, motion.root_positions * k, motion.rotations), out)
-        return {"frames": motion.n_frames, "joints": scaled.n_joints}
+        back = read_bvh(out, scale=rig.unit_scale)
+        first, _ = forward_kinematics(back.slice(0, 1))
+        return {"frames": motion.n_frames, "joints": scaled.n_joints}, first[0]
     if suffix == ".glb":
-        from dancegraph.motion.gltf import write_glb
+        from dancegraph.motion.gltf import node_worlds, write_glb
 
-        return write_glb(motion, rig, out)
+        summary = write_glb(motion, rig, out)
+        worlds = node_worlds(out)
+        return summary, np.array([worlds[n][:3, 3] for n in motion.skeleton.names])
+    if suffix in (".usd", ".usda", ".usdc"):
+        from dancegraph.motion.usd import joint_world_positions, write_usd
+
+        summary = write_usd(motion, out, rig)
+        return summary, joint_world_positions(out, [0])[1][0]
     from dancegraph.motion.fbx import shared_exporter
 
     positions, g = forward_kinematics(motion)
@@ -666,7 +701,63 @@ def write_on_rig(
             fps=np.float64(motion.fps),
             unit_scale=np.float64(rig.unit_scale),
         )
-        return (exporter or shared_exporter()).animate_rig(rig_path, anim, out)
+        summary = (exporter or shared_exporter()).animate_rig(rig_path, anim, out)
+    heads = summary.pop("first_frame")
+    return summary, np.array([heads[n] for n in motion.skeleton.names])
+
+
+def check_placement(rig: Rig, motion: Motion, written: np.ndarray) -> dict:
+    """The written file's first frame against the dance's, in world space (metres).
+
+    ``written``: ``(J, 3)`` world joint positions read back from the file, skeleton order.
+    Returns ``height_m`` (the written joints' extent along the rig's world up), ``rig_height_m``
+    (the rig's own bind-pose height), ``height_ratio`` (written / dance), ``up_error_deg`` (the
+    hips-to-head direction, written against dance), ``floor_offset_m`` (lowest written joint
+    less the dance's) and ``upright`` (the written character's up within 30° of world +Y).
+    Raises ``RigError``: ``rig_output_scale`` (height off by more than 10 %),
+    ``rig_output_not_upright``, ``rig_output_floor`` (more than 5 % of the height off the floor).
+    """
+    from dancegraph.motion.rig import RigError
+
+    expected, _ = forward_kinematics(motion.slice(0, 1))
+    expected = expected[0]
+    up = quat.rotate(quat.conjugate(rig.to_canonical), np.array([0.0, 1.0, 0.0]))
+    h_exp, h_got = float(np.ptp(expected @ up)), float(np.ptp(written @ up))
+    hips = rig.joint("hips")
+    top = next(
+        rig.joint(r)
+        for r in ("head", "neck", "upper_chest", "chest", "spine")
+        if rig.joint(r) is not None
+    )
+    figure = written[top] - written[hips]
+    out = {
+        "height_m": round(h_got, 4),
+        "rig_height_m": round(rig.height(), 4),
+        "height_ratio": round(h_got / h_exp, 4) if h_exp > 0 else float("inf"),
+        "up_error_deg": round(float(_angle(figure, expected[top] - expected[hips])), 3),
+        "floor_offset_m": round(float((written @ up).min() - (expected @ up).min()), 5),
+        "upright": bool(_angle(figure, np.array([0.0, 1.0, 0.0])) <= UPRIGHT_TOLERANCE_DEG),
+    }
+    if not abs(out["height_ratio"] - 1.0) <= HEIGHT_TOLERANCE:
+        raise RigError(
+            f"the written character is {h_got:.3f} m tall where the dance on the rig is "
+            f"{h_exp:.3f} m (ratio {out['height_ratio']:g})",
+            code="rig_output_scale",
+            field="height_m",
+        )
+    if not out["up_error_deg"] <= UPRIGHT_TOLERANCE_DEG:
+        raise RigError(
+            f"the written character is turned {out['up_error_deg']:g} degrees from upright",
+            code="rig_output_not_upright",
+            field="up_error_deg",
+        )
+    if not abs(out["floor_offset_m"]) <= 0.05 * h_exp:
+        raise RigError(
+            f"the written character stands {out['floor_offset_m']:g} m off the rig's floor",
+            code="rig_output_floor",
+            field="floor_offset_m",
+        )
+    return out
 
 
 class RigOutput:
@@ -675,21 +766,22 @@ class RigOutput:
     ``rig``: the loaded :class:`~dancegraph.motion.rig.Rig`; ``rig_path``: its file (FBX output
     poses that file in Blender); ``formats``: of ``bvh``, ``fbx``, ``glb``. Calling it with
     ``(k, dance, out_dir)`` retargets ``dance`` and writes ``alternatives/<k>.rig.<fmt>``; it
-    returns ``(files, report)``: ``{"rig.<fmt>": relative path}`` and the retarget report.
+    returns ``(files, report)``: ``{"rig.<fmt>": relative path}`` and the retarget report (with
+    each file's ``placement`` check under ``placement.<fmt>``). ``usd`` is written as ``.usd``.
     """
 
     def __init__(
         self,
         rig: Rig,
         rig_path: str | Path,
-        formats: list[str] | tuple[str, ...] = ("bvh", "fbx", "glb"),
+        formats: list[str] | tuple[str, ...] = ("bvh", "fbx", "glb", "usd"),
         *,
         exporter=None,
         params: RetargetParams | None = None,
     ):
         self.rig = rig
         self.rig_path = Path(rig_path)
-        self.formats = [f for f in ("bvh", "fbx", "glb") if f in formats]
+        self.formats = [f for f in ("bvh", "fbx", "glb", "usd") if f in formats]
         self.exporter = exporter
         self.params = params
         self._plan: tuple[int, RetargetPlan] | None = None
@@ -700,11 +792,13 @@ class RigOutput:
             self._plan = (key, plan_retarget(dance.skeleton, self.rig))
         motion, report = retarget(dance, self.rig, self.params, plan=self._plan[1])
         report["unit_scale"] = self.rig.unit_scale  # the .rig.bvh is in the rig's own units
-        files = {}
+        files, placement = {}, {}
         for fmt in self.formats:
             rel = f"alternatives/{k}.rig.{fmt}"
-            write_on_rig(
+            written = write_on_rig(
                 motion, self.rig, self.rig_path, Path(out_dir) / rel, exporter=self.exporter
             )
             files[f"rig.{fmt}"] = rel
+            placement[fmt] = written["placement"]
+        report["placement"] = placement
         return files, report

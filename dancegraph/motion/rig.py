@@ -700,7 +700,10 @@ class Rig:
       facing +Z); ``floor``: the floor's height in the canonical frame (m);
     - ``unit_scale``: metres per unit of the file (a BVH in centimetres: 0.01);
     - ``mesh``: the skinned mesh, or None; ``source``: the file's format (fbx, glb, bvh) and name;
-      ``dropped``: joints outside the hips' tree (kept at bind in FBX output, absent elsewhere).
+      ``dropped``: joints outside the hips' tree (kept at bind in FBX output, absent elsewhere);
+    - ``ancestors``: the file's nodes above the skeleton's root, top first, as
+      ``[(name, local (4, 4))]`` (an armature node, a unit or axis change): the writers place the
+      skeleton under them, so the character lands where it stood in the user's file.
     """
 
     skeleton: Skeleton
@@ -712,6 +715,7 @@ class Rig:
     mesh: RigMesh | None = None
     source: dict = field(default_factory=dict)
     dropped: list[str] = field(default_factory=list)
+    ancestors: list[tuple[str, np.ndarray]] = field(default_factory=list)
 
     def joint(self, role: str) -> int | None:
         """Skeleton index of the joint playing ``role``, or None."""
@@ -731,6 +735,8 @@ class Rig:
             "missing_optional": [r for r in ROLES[:22] if r not in self.roles.roles],
             "dropped": list(self.dropped),
             "height_m": round(float(self.height()), 4),
+            "up_axis": self.up_axis(),
+            "ancestors": [name for name, _ in self.ancestors],
             "unit_scale": self.unit_scale,
             "mesh": None
             if self.mesh is None
@@ -746,6 +752,19 @@ class Rig:
     def height(self) -> float:
         """Bind-pose height (m): the highest joint above the floor."""
         return float(self.canonical_positions()[:, 1].max() - self.floor)
+
+    def up_axis(self) -> str:
+        """The world axis the character's up runs along in its file (``"+Y"`` is upright)."""
+        up = quat.rotate(quat.conjugate(self.to_canonical), np.array([0.0, 1.0, 0.0]))
+        k = int(np.argmax(np.abs(up)))
+        return ("+" if up[k] > 0 else "-") + "XYZ"[k]
+
+    def ancestors_world(self) -> np.ndarray:
+        """``(4, 4)`` world matrix of the skeleton root's parent (identity without ancestors)."""
+        world = np.eye(4)
+        for _name, local in self.ancestors:
+            world = world @ np.asarray(local, dtype=float)
+        return world
 
 
 def bind_positions(rig: Rig) -> np.ndarray:
@@ -815,6 +834,7 @@ def build_rig(
     unit_scale: float = 1.0,
     source: dict | None = None,
     end_sites: dict[str, np.ndarray] | None = None,
+    ancestors: dict[str, list] | None = None,
 ) -> Rig:
     """A :class:`Rig` from joints and their world bind matrices (see the module docstring).
 
@@ -822,6 +842,7 @@ def build_rig(
     position). ``mesh.joints`` index ``names``. Raises ``RigError``: ``rig_no_armature`` (no
     joints), ``rig_missing_roles`` (``field`` lists them), ``rig_disconnected`` (roles in separate
     trees), ``rig_zero_length`` (a mapped bone without length), ``rig_degenerate``.
+    ``ancestors``: per top joint's name, the nodes above it (see :class:`Rig`).
     """
     names = list(names)
     parents = np.asarray(parents, dtype=np.int64)
@@ -945,6 +966,7 @@ def build_rig(
         mesh=mesh,
         source=dict(source or {}),
         dropped=dropped,
+        ancestors=list((ancestors or {}).get(names_o[0], [])),
     )
 
 
@@ -1096,16 +1118,19 @@ def load_rig(
     if suffix in (".glb", ".gltf"):
         from dancegraph.motion.gltf import read_gltf_rig
 
-        names, parents, mats, mesh = read_gltf_rig(path)
+        names, parents, mats, mesh, ancestors = read_gltf_rig(path)
     else:
         from dancegraph.motion.ufbx_reader import read_fbx_rig
 
-        names, parents, mats, mesh = read_fbx_rig(path)
+        names, parents, mats, mesh, ancestors = read_fbx_rig(path)
     if scale is not None:
         mats = mats.copy()
         mats[:, :3, 3] *= scale
         if mesh is not None:
             mesh.positions = mesh.positions * scale
+        # the world is scaled: so is the top node the skeleton hangs from
+        top = np.diag([scale, scale, scale, 1.0])
+        ancestors = {j: [("scale", top)] + chain for j, chain in ancestors.items()}
     return build_rig(
         names,
         parents,
@@ -1114,4 +1139,5 @@ def load_rig(
         mapping=mapping,
         unit_scale=1.0 if scale is None else scale,
         source=source,
+        ancestors=ancestors,
     )

@@ -27,7 +27,9 @@ READ_TIMEOUT_S = 120.0
 
 
 def read_fbx_rig(path: str | Path):
-    """``(names, parents (J,), bind (J, 4, 4), RigMesh | None)`` of an FBX file (metres, Y up)."""
+    """``(names, parents (J,), bind (J, 4, 4), RigMesh | None, ancestors)`` of an FBX file
+    (metres, Y up). ``ancestors``: per top joint's name, the nodes above it from the top down,
+    as ``[(name, node-to-parent (4, 4))]``; the top one carries the unit and axis conversion."""
     from dancegraph.motion.rig import RigError, RigMesh
 
     path = Path(path)
@@ -64,7 +66,13 @@ def read_fbx_rig(path: str | Path):
                 weights=data["mesh_weights"],
                 normals=None,
             )
-        return names, data["parents"], data["bind"], mesh
+        ancestors: dict[str, list] = {}
+        if "anc_joint" in data:
+            for joint, name, local in zip(
+                data["anc_joint"], data["anc_name"], data["anc_local"], strict=True
+            ):
+                ancestors.setdefault(str(joint), []).append((str(name), local))
+        return names, data["parents"], data["bind"], mesh, ancestors
 
 
 def _matrix(m) -> np.ndarray:
@@ -138,6 +146,7 @@ def _read(path: str, keep: list) -> dict[str, np.ndarray]:  # pragma: no cover -
         "names": np.array([n.name for n in joints], dtype=str),
         "parents": np.array(parents, dtype=np.int64),
         "bind": binds,
+        **_ancestors(joints, parents, keep),
     }
     pos_all, tri_all, jnt_all, wgt_all = [], [], [], []
     base = 0
@@ -190,6 +199,26 @@ def _read(path: str, keep: list) -> dict[str, np.ndarray]:  # pragma: no cover -
         out["mesh_joints"] = np.concatenate(jnt_all)
         out["mesh_weights"] = np.concatenate(wgt_all)
     return out
+
+
+def _ancestors(joints: list, parents: list[int], keep: list) -> dict[str, np.ndarray]:
+    """The nodes above each top joint, top first: ``anc_joint``, ``anc_name``, ``anc_local``
+    (``(K, 4, 4)`` node-to-parent matrices; the top node's carries the unit and axis change)."""
+    rows: list[tuple[str, str, np.ndarray]] = []
+    for n, p in zip(joints, parents, strict=True):
+        if p >= 0:
+            continue
+        chain, a = [], n.parent
+        while a is not None and not a.is_root:
+            keep.append(a)
+            chain.append((n.name, a.name, _matrix(a.node_to_parent)))
+            a = a.parent
+        rows.extend(chain[::-1])
+    return {
+        "anc_joint": np.array([r[0] for r in rows], dtype=str),
+        "anc_name": np.array([r[1] for r in rows], dtype=str),
+        "anc_local": np.array([r[2] for r in rows], dtype=float).reshape(-1, 4, 4),
+    }
 
 
 if __name__ == "__main__":  # pragma: no cover - the child process

@@ -194,8 +194,15 @@ def _job_rig(
         return load_stored_rig(store, row)
 
 
-def job_rig_output(store: ObjectStore, database_url: str, tenant_id: str, rig_id: str | None):
-    """The render hook that writes a job's alternatives on its rig (BVH and GLB), or None.
+def job_rig_output(
+    store: ObjectStore,
+    database_url: str,
+    tenant_id: str,
+    rig_id: str | None,
+    formats: tuple[str, ...] = ("bvh", "glb"),
+):
+    """The render hook that writes a job's alternatives on its rig (``formats`` of BVH, GLB and
+    USD), or None.
 
     FBX on the rig is the ``fbx`` queue's work (:func:`write_rig_fbx`). Raises ``RigError``
     ``unknown_rig`` when the rig was deleted after the job was submitted.
@@ -205,7 +212,7 @@ def job_rig_output(store: ObjectStore, database_url: str, tenant_id: str, rig_id
     from dancegraph.motion.retarget import RigOutput
 
     rig, path = _job_rig(store, database_url, tenant_id, rig_id)
-    return RigOutput(rig, path, ("bvh", "glb"))
+    return RigOutput(rig, path, [f for f in formats if f in ("bvh", "glb", "usd")])
 
 
 def write_rig_fbx(

@@ -301,7 +301,13 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
         source = {"file": job.audio_filename, "sha256": job.audio_sha256}
-        on_rig = job_rig_output(store, settings.database_url, job.tenant_id, spec.output.rig)
+        on_rig = job_rig_output(
+            store,
+            settings.database_url,
+            job.tenant_id,
+            spec.output.rig,
+            ("bvh", "glb", *(("usd",) if "usd" in spec.output.formats else ())),
+        )
         files = render(store, job_id, spec, analysis, found, source, on_rig)
         beat.check()
         done = jobs.result_files(store, job_id)

@@ -9,7 +9,9 @@ Rigs: ``mixamo`` (Mixamo names, long legs and short arms, centimetres), ``unreal
 Mannequin names, A-pose, a ``root`` bone and twist bones, Z up and facing +Y in the file),
 ``rigify`` (Rigify DEF bones, split upper arms and thighs), ``child`` (0.6 x, big head),
 ``fingers`` (Mixamo names with twist bones and three-segment fingers), ``skinned`` (Unity
-humanoid names with a skinned mesh; also as ``skinned.glb``), ``cmu_cm`` (BVH in centimetres with
+humanoid names with a skinned mesh; also as ``skinned.glb``), ``parented`` (a skinned GLB whose
+armature sits under a node scaled 0.01 and turned -90 degrees about X), ``prerot`` (a skinned
+Mixamo-named FBX in centimetres with pre- and post-rotations), ``cmu_cm`` (BVH in centimetres with
 CMU names), and the bad ones: ``bad_no_armature`` (a mesh only), ``bad_no_legs``,
 ``bad_disconnected`` (legs in trees of their own), ``bad_zero_length`` (a BVH knee on its hip).
 """
@@ -30,6 +32,10 @@ from dancegraph.motion.skeleton import Motion, Skeleton
 BLENDER_SCRIPT = Path(__file__).with_name("blender_rigs.py")
 GOOD_RIGS = ("mixamo.fbx", "unreal.fbx", "rigify.fbx", "child.fbx", "fingers.fbx")
 GOOD_RIGS_MESH = ("skinned.fbx", "skinned.glb")
+#: Rigs whose skeleton sits under parent transforms: a glTF armature under a node scaled 0.01 and
+#: turned -90 degrees about X (a centimetre, Z-up export), an FBX in centimetres with pre- and
+#: post-rotations on every bone (Maya's joint orients).
+PARENTED_RIGS = ("parented.glb", "prerot.fbx")
 GOOD_BVH_RIGS = ("cmu_cm.bvh",)
 BAD_RIGS = {
     "bad_no_armature.fbx": "rig_no_armature",
@@ -306,6 +312,25 @@ def rig_specs() -> list[dict]:
             "formats": ["fbx", "glb"],
         }
     )
+    specs.append(
+        {
+            "name": "parented",
+            "bones": _bones(_template(legs=1.02), _UNITY),
+            "mesh": True,
+            "formats": ["glb"],
+            "parent": {"name": "Root", "rotation_x_deg": -90.0, "scale": 0.01},
+        }
+    )
+    specs.append(
+        {
+            "name": "prerot",
+            "bones": _bones(_template(legs=1.08, arms=0.95), mixamo, no_fingers),
+            "mesh": True,
+            "cm": True,
+            "fbx_cm": True,
+            "prerot": True,
+        }
+    )
     # bad rigs
     specs.append({"name": "bad_no_armature", "bones": [], "mesh": True})
     keep = {k for k in _MIXAMO if not k.endswith(("hip", "knee", "ankle", "toe"))} & no_fingers
@@ -393,4 +418,69 @@ def make_rigs(out: Path, *, blender: bool = True) -> Path:
         )
         if proc.returncode != 0:
             raise RuntimeError(f"blender_rigs.py failed: {proc.stderr[-3000:]}")
+        skin_in_armature_space(out / "parented.glb")
     return out
+
+
+def skin_in_armature_space(path: Path) -> None:
+    """Rewrite a GLB's skin in its armature node's own space (centimetres, Z up under ``Root``).
+
+    Blender writes inverse-bind matrices and vertices in the world; DCC exporters as often write
+    them in the armature's space, the other form glTF's skinning rule ``world · ibm · v`` allows:
+    ``ibm' = ibm · A`` and ``v' = A⁻¹ · v`` with ``A`` the armature node's world matrix, so the
+    character stands where it did.
+    """
+    import struct
+
+    from scipy.spatial.transform import Rotation
+
+    raw = bytearray(path.read_bytes())
+    (n_json,) = struct.unpack_from("<I", raw, 12)
+    doc = json.loads(bytes(raw[20 : 20 + n_json]))
+    blob_at = 20 + n_json + 8
+    nodes = doc["nodes"]
+    parent = {c: i for i, n in enumerate(nodes) for c in n.get("children", [])}
+
+    def local(i: int) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_quat(nodes[i].get("rotation", [0, 0, 0, 1])).as_matrix()
+        m[:3, :3] *= np.asarray(nodes[i].get("scale", [1, 1, 1]))[None, :]
+        m[:3, 3] = nodes[i].get("translation", [0, 0, 0])
+        return m
+
+    skin = doc["skins"][0]
+    top = next(j for j in skin["joints"] if parent.get(j) not in skin["joints"])
+    arm, a = np.eye(4), parent.get(top)
+    while a is not None:
+        arm, a = local(a) @ arm, parent.get(a)
+
+    def view(k: int, width: int) -> np.ndarray:
+        acc = doc["accessors"][k]
+        bv = doc["bufferViews"][acc["bufferView"]]
+        start = blob_at + bv.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        return np.frombuffer(bytes(raw), np.float32, acc["count"] * width, start).reshape(-1, width)
+
+    def put(k: int, values: np.ndarray) -> None:
+        acc = doc["accessors"][k]
+        bv = doc["bufferViews"][acc["bufferView"]]
+        start = blob_at + bv.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        data = values.astype(np.float32).tobytes()
+        raw[start : start + len(data)] = data
+
+    ibm = view(skin["inverseBindMatrices"], 16).reshape(-1, 4, 4).transpose(0, 2, 1)
+    put(skin["inverseBindMatrices"], (ibm @ arm).transpose(0, 2, 1).reshape(-1, 16))
+    inv = np.linalg.inv(arm)
+    for prim in doc["meshes"][0]["primitives"]:
+        k = prim["attributes"]["POSITION"]
+        pos = view(k, 3) @ inv[:3, :3].T + inv[:3, 3]
+        put(k, pos)
+        doc["accessors"][k]["min"] = pos.min(axis=0).tolist()
+        doc["accessors"][k]["max"] = pos.max(axis=0).tolist()
+        if "NORMAL" in prim["attributes"]:
+            n = view(prim["attributes"]["NORMAL"], 3) @ arm[:3, :3]
+            length = np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            put(prim["attributes"]["NORMAL"], n / length)
+    text = json.dumps(doc).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + bytes(raw[20 + n_json :])
+    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)

@@ -30,12 +30,12 @@ from dancegraph.motion.retarget import (
     write_on_rig,
 )
 from dancegraph.motion.rig import SIDES, foot_points, load_rig
-from tests.motion.rigs import GOOD_BVH_RIGS, GOOD_RIGS, GOOD_RIGS_MESH
+from tests.motion.rigs import GOOD_BVH_RIGS, GOOD_RIGS, GOOD_RIGS_MESH, PARENTED_RIGS
 
 needs_blender = pytest.mark.skipif(not fbx_available(), reason="Blender not installed")
-ALL_RIGS = [pytest.param(n, marks=needs_blender) for n in GOOD_RIGS + GOOD_RIGS_MESH] + list(
-    GOOD_BVH_RIGS
-)
+ALL_RIGS = [
+    pytest.param(n, marks=needs_blender) for n in GOOD_RIGS + GOOD_RIGS_MESH + PARENTED_RIGS
+] + list(GOOD_BVH_RIGS)
 
 
 def _file_checks(source, rig, motion) -> dict:
@@ -153,10 +153,13 @@ def _glb_world(path, frames: list[int]):
     for f in frames:
         local = []
         for i, node in enumerate(gltf.nodes):
+            if node.matrix is not None:  # the rig's ancestors: a static matrix each
+                local.append(np.asarray(node.matrix, dtype=float).reshape(4, 4).T)
+                continue
             t = tracks.get((i, "translation"), [node.translation or [0, 0, 0]] * (f + 1))[f]
             r = tracks.get((i, "rotation"), [node.rotation or [0, 0, 0, 1]] * (f + 1))[f]
             m = np.eye(4)
-            m[:3, :3] = Rotation.from_quat(r).as_matrix()
+            m[:3, :3] = Rotation.from_quat(r).as_matrix() * np.asarray(node.scale or [1, 1, 1])
             m[:3, 3] = t
             local.append(m)
         world = [None] * len(local)
@@ -362,3 +365,144 @@ def test_hand_ik_puts_the_hands_where_the_source_has_them(rig_dir, salsa_clip):
     assert hand_miss(with_ik) < 1e-3 and report["hand_error_m"]["median"] < 1e-3
     assert np.isfinite(with_ik.rotations).all()
     assert report["floor_error_m"]["max_abs"] <= 0.01  # the feet are not disturbed
+
+
+# --- rigs under parent transforms ---------------------------------------------------------------
+
+
+def _truth(name: str) -> dict[str, np.ndarray]:
+    """The test rig's joints where its generator put them: world metres, Y up."""
+    from tests.motion.rigs import rig_specs
+
+    spec = next(s for s in rig_specs() if s["name"] == name)
+    return {b["name"]: np.array([b["head"][0], b["head"][2], -b["head"][1]]) for b in spec["bones"]}
+
+
+def _world_checks(rig, motion, frames: list[int], got: np.ndarray) -> dict:
+    """Issue 38's checks on world positions read back from a file: ``got (len(frames), J, 3)``."""
+    pos, g = forward_kinematics(motion)
+    pos, g = pos[frames], g[frames]
+    height = np.ptp(got[..., 1], axis=1) / np.ptp(pos[..., 1], axis=1)
+    hips, head = rig.joint("hips"), rig.joint("head")
+    up = got[:, head] - got[:, hips]
+    tilt = np.degrees(np.arccos(up[:, 1] / np.linalg.norm(up, axis=1)))
+    floor = []
+    rest = rig.canonical_positions()
+    for side in SIDES:
+        points = foot_points(rig.skeleton, rig.roles.roles, side)
+        heights = np.stack(
+            [
+                got[:, j, 1]
+                + quat.rotate(g[:, j], np.broadcast_to(off, (len(frames), 3)))[:, 1]
+                - (rest[j, 1] + off[1] - rig.floor)
+                for j, off in points
+            ],
+            axis=1,
+        )
+        floor.append(heights.min(axis=1) - rig.floor)
+    return {
+        "joint_error_m": float(np.abs(got - pos).max()),
+        "height_ratio_error": float(np.abs(height - 1.0).max()),
+        "tilt_deg": float(tilt.max()),
+        "sole_m": np.stack(floor, axis=1),  # (frames, 2): lowest foot point above the floor
+    }
+
+
+@needs_blender
+@pytest.mark.parametrize("name", PARENTED_RIGS)
+def test_rigs_under_parent_transforms_land_where_they_stood(rig_dir, salsa_clip, tmp_path, name):
+    """A centimetre, Z-up glTF armature under a turned, scaled node and a centimetre FBX with
+    pre- and post-rotations: read at their size in world space, written under the same parents,
+    and every written file stands upright with its feet on the floor."""
+    rig = load_rig(rig_dir / name)
+    truth = _truth(name.split(".")[0])
+    bind = {n: p for n, p in zip(rig.skeleton.names, _bind(rig), strict=True)}
+    assert max(np.linalg.norm(bind[n] - truth[n]) for n in truth) < 1e-3
+    true_height = max(p[1] for p in truth.values()) - min(p[1] for p in truth.values())
+    assert abs(np.ptp(_bind(rig)[:, 1]) / true_height - 1.0) < 0.02
+    assert rig.up_axis() == "+Y" and rig.ancestors
+    motion, report = retarget(salsa_clip, rig)
+    assert abs(report["world"]["height_m"] / rig.height() - 1.0) < 1e-6 and rig.height() < 2.0
+    src_pos, src_g = forward_kinematics(salsa_clip)
+    contacts = foot_contacts(src_pos, salsa_clip.fps, salsa_clip.skeleton, src_g)
+    frames = list(range(0, motion.n_frames, 7))
+    files = {fmt: tmp_path / f"dance.{fmt}" for fmt in ("bvh", "glb", "usda", "fbx")}
+    for path in files.values():
+        summary = write_on_rig(motion, rig, rig_dir / name, path)
+        assert summary["placement"]["height_ratio"] == pytest.approx(1.0, abs=0.02)
+        assert summary["placement"]["upright"]
+    back = read_bvh(files["bvh"], scale=rig.unit_scale)
+    got = {"bvh": forward_kinematics(back)[0][frames]}
+    names, worlds, _ = _glb_world(files["glb"], frames)
+    assert [n.name for n in _gltf_nodes(files["glb"])][: len(rig.ancestors)] == [
+        a for a, _ in rig.ancestors
+    ]
+    got["glb"] = np.stack([[w[names.index(n)][:3, 3] for n in rig.skeleton.names] for w in worlds])
+    got["usda"] = _usd_world(files["usda"], frames)
+    few = frames[::10]
+    fbx = _ufbx_positions(files["fbx"], few)
+    got["fbx"] = np.array([[fbx[str(f)][n] for n in rig.skeleton.names] for f in few])
+    for fmt, positions in got.items():
+        checked = frames if fmt != "fbx" else few
+        c = _world_checks(rig, motion, checked, positions)
+        assert c["joint_error_m"] < 1e-3, (fmt, c["joint_error_m"])
+        assert c["height_ratio_error"] < 0.02 and c["tilt_deg"] < 30.0, (fmt, c)
+        planted = contacts[checked]
+        assert np.abs(c["sole_m"][planted]).max() < 0.01, fmt
+        assert (c["sole_m"] > -0.01).all(), fmt
+
+
+def _gltf_nodes(path):
+    pygltflib = pytest.importorskip("pygltflib")
+    return pygltflib.GLTF2().load(str(path)).nodes
+
+
+def _usd_world(path, frames: list[int]) -> np.ndarray:
+    """Joint world positions (metres) from pxr's UsdSkel alone, at ``frames``."""
+    pxr = pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    del pxr
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    skel = next(UsdSkel.Skeleton(p) for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+    query = UsdSkel.Cache().GetSkelQuery(skel)
+    out = []
+    for f in frames:
+        xf = UsdGeom.XformCache(Usd.TimeCode(f))
+        out.append(np.array(query.ComputeJointWorldTransforms(xf))[:, 3, :3])
+    return np.stack(out)
+
+
+def _ufbx_positions(path, frames: list[int]) -> dict:
+    """Bone world positions per frame from ufbx alone (in a child process)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _UFBX_READER, str(path), json.dumps(frames)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout)["positions"]
+
+
+def test_a_misplaced_output_is_an_error(rig_dir, salsa_clip, tmp_path):
+    """The output is read back: a character written at the wrong size is refused and removed."""
+    from dancegraph.motion.retarget import check_placement
+    from dancegraph.motion.rig import RigError
+
+    rig = load_rig(rig_dir / "cmu_cm.bvh")
+    motion, _ = retarget(salsa_clip.slice(0, 30), rig)
+    first = forward_kinematics(motion.slice(0, 1))[0][0]
+    assert check_placement(rig, motion, first)["height_ratio"] == pytest.approx(1.0)
+    with pytest.raises(RigError) as err:
+        check_placement(rig, motion, first * 100.0)  # centimetres taken for metres
+    assert err.value.code == "rig_output_scale"
+    lying = first[:, [0, 2, 1]] * [1, 1, -1]  # a Z-up frame never turned upright
+    with pytest.raises(RigError) as err:
+        check_placement(rig, motion, lying)
+    assert err.value.code in ("rig_output_not_upright", "rig_output_scale")
+    with pytest.raises(RigError) as err:
+        check_placement(rig, motion, first + [0.0, 0.3, 0.0])
+    assert err.value.code == "rig_output_floor"

@@ -251,6 +251,7 @@ _MEDIA = {
     "bvh": "text/plain; charset=utf-8",
     "fbx": "application/octet-stream",
     "glb": "model/gltf-binary",
+    "usd": "application/octet-stream",  # USD's binary crate format
 }
 
 
@@ -271,14 +272,14 @@ _DOWNLOAD_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 @router.get(
     "/{job_id}/alternatives/{k}.rig.{fmt}",
-    summary="Download alternative k on the job's rig (spec output.rig) as BVH, FBX or GLB",
+    summary="Download alternative k on the job's rig (spec output.rig) as BVH, FBX, GLB or USD",
     response_class=FileResponse,
     responses=_DOWNLOAD_RESPONSES,
 )
 def download_alternative_on_rig(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
-    fmt: Literal["bvh", "fbx", "glb"] = Path(..., description="file format"),
+    fmt: Literal["bvh", "fbx", "glb", "usd"] = Path(..., description="file format"),
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
@@ -310,14 +311,14 @@ def _result_key(store: ObjectStore, job, name: str, what: str, field: str) -> st
 
 @router.get(
     "/{job_id}/alternatives/{k}.{fmt}",
-    summary="Download alternative k as BVH or FBX",
+    summary="Download alternative k as BVH, FBX or USD",
     response_class=FileResponse,
     responses=_DOWNLOAD_RESPONSES,
 )
 def download_alternative(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
-    fmt: Literal["bvh", "fbx"] = Path(..., description="file format"),
+    fmt: Literal["bvh", "fbx", "usd"] = Path(..., description="file format"),
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
