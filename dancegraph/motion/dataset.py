@@ -131,7 +131,7 @@ from dancegraph.motion.rig import (
     check_mapping,
     map_roles,
 )
-from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton
+from dancegraph.motion.skeleton import CANONICAL_JOINTS, Motion, Skeleton, find_canonical
 from dancegraph.rhythm import signatures as sig
 from dancegraph.store import ObjectStore
 
@@ -823,6 +823,7 @@ def _library_source(src: Path, m: Manifest, files: list[Path]) -> tuple[_Library
                 field="skeleton",
             ) from None
         rest = [f for f in files if _norm(f) != path]
+        rig.skeleton.canonical = _canonical(rig.skeleton, rig.roles, bool(m.roles))
         return _Library(rig.skeleton, rig.roles, rig, f"rig:{path.name}"), rest
     first = [f for f in files if m.skeleton in (f.name, f.stem, _clip_id(f.stem, m.strip_suffix))]
     if not first:
@@ -1334,8 +1335,8 @@ def _rest(skeleton: Skeleton) -> np.ndarray:
 
 def _take_roles(skeleton: Skeleton, mapping: dict[str, str] | None, name: str) -> RoleMap:
     """The humanoid roles of a take's skeleton (``mapping``, names, then structure);
-    ``MotionFileError`` ``skeleton_unmapped`` where the required ones are not found. With a
-    ``mapping`` the skeleton's canonical joints follow it."""
+    ``MotionFileError`` ``skeleton_unmapped`` where the required ones are not found. The
+    skeleton's canonical joints are set (``_canonical``)."""
     try:
         roles = map_roles(skeleton.names, skeleton.parents, _rest(skeleton), mapping)
     except RigError as exc:
@@ -1343,12 +1344,22 @@ def _take_roles(skeleton: Skeleton, mapping: dict[str, str] | None, name: str) -
     missing = [r for r in REQUIRED_ROLES if r not in roles.roles]
     if missing:
         raise _unmapped(f"no joint for {', '.join(missing)}", name)
-    if mapping:
-        canon = {k: roles.roles[k] for k in CANONICAL_JOINTS if k in roles.roles}
-        for side in ("left", "right"):
-            canon.setdefault(f"{side}_toe", canon[f"{side}_ankle"])
-        skeleton.canonical = canon
+    skeleton.canonical = _canonical(skeleton, roles, bool(mapping))
     return roles
+
+
+def _canonical(skeleton: Skeleton, roles: RoleMap, mapped: bool) -> dict[str, str]:
+    """The canonical joints of the import's features: by name (``find_canonical``), the gaps
+    filled from the roles (which win where the user ``mapped`` them); a missing chest is the
+    upper chest or the spine, a missing toe the ankle."""
+    canon = dict(find_canonical(skeleton.names))
+    for k in CANONICAL_JOINTS:
+        if k in roles.roles and (mapped or k not in canon):
+            canon[k] = roles.roles[k]
+    canon.setdefault("chest", roles.roles.get("upper_chest") or canon["spine"])
+    for side in ("left", "right"):
+        canon.setdefault(f"{side}_toe", canon[f"{side}_ankle"])
+    return canon
 
 
 def _unmapped(why: str, name: str) -> MotionFileError:
@@ -1362,22 +1373,28 @@ def _unmapped(why: str, name: str) -> MotionFileError:
 
 
 def _library_rig(lib: _Library) -> Rig:
-    """The rig of the library's skeleton at rest, built once; ``skeleton_source_invalid`` when
-    it cannot be a retarget target (e.g. a bone of no length)."""
+    """The rig of the library's skeleton at rest, standing on the floor (y = 0, so that
+    retargeted takes stand where the library's own takes do), built once;
+    ``skeleton_source_invalid`` when it cannot be a retarget target (e.g. a bone of no
+    length)."""
     if lib.rig is None:
         assert lib.skeleton is not None and lib.roles is not None
         sk = lib.skeleton
         mats = np.tile(np.eye(4), (sk.n_joints, 1, 1))
         mats[:, :3, 3] = _rest(sk)
+        user = {r: n for r, n in lib.roles.roles.items() if lib.roles.how[r] == "user"}
+        ends = {sk.names[j]: v for j, v in sk.end_sites.items()}
         try:
-            lib.rig = build_rig(
-                sk.names,
-                sk.parents,
-                mats,
-                mapping={r: n for r, n in lib.roles.roles.items() if lib.roles.how[r] == "user"},
-                source={"format": "bvh", "file": lib.source},
-                end_sites={sk.names[j]: v for j, v in sk.end_sites.items()},
-            )
+            for _ in range(2):  # the second time with the rest pose standing on the floor
+                lib.rig = build_rig(
+                    sk.names,
+                    sk.parents,
+                    mats,
+                    mapping=user,
+                    source={"format": "bvh"},
+                    end_sites=ends,
+                )
+                mats[:, 1, 3] -= lib.rig.floor
         except RigError as exc:
             raise DanceGraphError(
                 f"the library's skeleton ({lib.source}) cannot take retargeted takes: "
@@ -1443,6 +1460,16 @@ def _check_fps(header: float, declared: bool, lib: _Library, name: str) -> None:
     lib.header_fps = lib.header_fps or header
 
 
+def _same_body(a: Skeleton, b: Skeleton) -> bool:
+    """Same joints, hierarchy and bone offsets (to 0.1 mm): one body, whatever the file's
+    channel layout or end sites."""
+    return (
+        a.names == b.names
+        and np.array_equal(a.parents, b.parents)
+        and np.allclose(a.offsets[1:], b.offsets[1:], rtol=0, atol=1e-4)
+    )
+
+
 def _take_on_library(
     path: Path, cm: ClipManifest, m: Manifest, lib: _Library
 ) -> tuple[Motion, dict]:
@@ -1465,8 +1492,8 @@ def _take_on_library(
         lib.skeleton, lib.roles, lib.rig = motion.skeleton, roles, rig
         lib.source = f"take:{path.name}"
         return motion, take
-    if motion.skeleton == lib.skeleton:
-        return motion, take
+    if _same_body(motion.skeleton, lib.skeleton):
+        return Motion(lib.skeleton, motion.fps, motion.root_positions, motion.rotations), take
     target = _library_rig(lib)
     out, report = retarget(motion, target, plan=plan_retarget(motion.skeleton, target, roles))
     order = [target.skeleton.index(nm) for nm in lib.skeleton.names]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import soundfile as sf
 from scipy.spatial.transform import Rotation
 
 from dancegraph.motion import quat
@@ -225,42 +226,109 @@ def make_clip(
     return Motion(sk, fps, root, rotations), bars, signatures
 
 
-def write_demo_library(out_dir: str | Path, seed: int = 0) -> Path:
-    """Write the demo library into ``out_dir``: one BVH per clip and ``manifest.json``.
+def library_recipes(n_takes: int | None = None) -> tuple[DemoClip, ...]:
+    """The takes of a demo library: ``DEMO_CLIPS``, or ``n_takes`` cycling their styles, tempos
+    and signature patterns (ids ``<recipe id>_<k>``, k from 0)."""
+    if n_takes is None:
+        return DEMO_CLIPS
+    return tuple(
+        DemoClip(f"{r.id}_{k:02d}", r.style, r.tempo_bpm, r.n_bars, r.signatures)
+        for k in range(n_takes)
+        for r in (DEMO_CLIPS[k % len(DEMO_CLIPS)],)
+    )
 
-    The manifest (the format ``dancegraph dataset import`` reads) carries each clip's style, its
-    bars (4 beat times + the next downbeat, seconds) and each bar's rhythm signature. Returns
-    ``out_dir``. The same seed writes the same files.
+
+#: Bars of music before a take starts (the tracker's lead-in) and after it ends.
+MUSIC_LEAD_BARS = 2
+MUSIC_TAIL_BARS = 1
+
+
+def take_music(recipe: DemoClip, seed: int):
+    """The music a demo take is danced to: a generated song (``music.generator``) at the
+    take's tempo in 4/4 without drift, swing, pickup or breaks, ``MUSIC_LEAD_BARS`` bars
+    before the take and ``MUSIC_TAIL_BARS`` after. Returns ``(song, offset_s)``: the song and
+    the audio time (s) of the take's first frame (its first downbeat)."""
+    from dancegraph.music.generator import generate, random_config
+
+    lead, rest = MUSIC_LEAD_BARS, recipe.n_bars + MUSIC_TAIL_BARS
+    cfg = random_config(
+        seed,
+        meter=4,
+        tempo_bpm=recipe.tempo_bpm,
+        form=["intro", "A", "B"],
+        section_bars={"intro": lead, "A": rest // 2, "B": rest - rest // 2},
+    )
+    cfg.swing, cfg.drift, cfg.pickup_beats, cfg.breaks = 0.0, 0.0, 0, False
+    song = generate(cfg)
+    return song, float(song.truth["downbeats"][lead])
+
+
+def _music_truth(song, offset_s: float, recipe: DemoClip) -> dict:
+    """The take's true grid on its own clock (s): the song's beats and downbeats less the
+    offset, over the take's bars."""
+    span = recipe.n_bars * 4 * 60.0 / recipe.tempo_bpm + 1e-6
+    beats = np.asarray(song.truth["beats"]) - offset_s
+    downs = np.asarray(song.truth["downbeats"]) - offset_s
+    return {
+        "tempo_bpm": recipe.tempo_bpm,
+        "audio_offset_s": round(offset_s, 6),
+        "beats": [round(float(t), 6) for t in beats[(beats > -1e-6) & (beats <= span)]],
+        "downbeats": [round(float(t), 6) for t in downs[(downs > -1e-6) & (downs <= span)]],
+    }
+
+
+def write_demo_library(
+    out_dir: str | Path, seed: int = 0, *, n_takes: int | None = None, with_music: bool = False
+) -> Path:
+    """Write the demo library into ``out_dir``: one BVH per take and ``manifest.json``.
+
+    ``n_takes``: that many takes cycling the demo recipes (default: the 6 of ``DEMO_CLIPS``).
+    Without music the manifest (the format ``dancegraph dataset import`` reads) carries each
+    take's style, its bars (4 beat times + the next downbeat, seconds) and each bar's rhythm
+    signature. ``with_music``: each take also gets the music it is danced to
+    (``<id>.ogg``, :func:`take_music`), named in the manifest with its ``audio_offset_s`` and
+    no annotations (the import grids it from the music), and ``truth.json`` holds each take's
+    true grid (``tempo_bpm``, ``audio_offset_s``, ``beats``, ``downbeats``, s on the take's
+    clock). Returns ``out_dir``. The same arguments write the same files.
     """
     from dancegraph.motion.contacts import clean_foot_skate
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
+    recipes = library_recipes(n_takes)
     clips: dict[str, dict] = {}
-    for recipe in DEMO_CLIPS:
+    truth: dict[str, dict] = {}
+    for k, recipe in enumerate(recipes):
         motion, bars, signatures = make_clip(recipe, rng)
         motion, _ = clean_foot_skate(motion)
         write_bvh(motion, out / f"{recipe.id}.bvh")
-        clips[recipe.id] = {
-            "file": f"{recipe.id}.bvh",
-            "style": recipe.style,
-            "tempo_bpm": recipe.tempo_bpm,
-            "bars": bars,
-            "signatures": signatures,
-        }
+        clips[recipe.id] = {"file": f"{recipe.id}.bvh", "style": recipe.style}
+        if with_music:
+            song, offset = take_music(recipe, seed * 1000 + k)
+            sf.write(out / f"{recipe.id}.ogg", song.y, song.sr, format="OGG", subtype="VORBIS")
+            clips[recipe.id].update(audio=f"{recipe.id}.ogg", audio_offset_s=round(offset, 6))
+            truth[recipe.id] = _music_truth(song, offset, recipe)
+        else:
+            clips[recipe.id].update(tempo_bpm=recipe.tempo_bpm, bars=bars, signatures=signatures)
     manifest = {
         "name": "demo",
         "licence": "generated by DanceGraph; free to use",
         "source": "dancegraph.motion.demo",
         "description": (
-            f"Generated demo library (seed {seed}): {len(DEMO_CLIPS)} clips in "
-            f"{len({c.style for c in DEMO_CLIPS})} styles at known tempos; every bar's beats "
-            "and rhythm signature are exact."
+            f"Generated demo library (seed {seed}): {len(recipes)} takes in "
+            f"{len({c.style for c in recipes})} styles at known tempos; "
+            + (
+                "each with the music it is danced to (truth.json: the true grids)."
+                if with_music
+                else "every bar's beats and rhythm signature are exact."
+            )
         ),
         "fps": DEMO_FPS,
         "scale": 1.0,
         "clips": clips,
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    if with_music:
+        (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
     return out
