@@ -198,6 +198,12 @@ class Output(_Strict):
         "it as alternatives/<k>.rig.bvh and .rig.glb (and .rig.fbx / .rig.usd when formats has "
         "fbx / usd)",
     )
+    follow_rig: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9-]{1,36}$",
+        description="with couple: id of one of your rigs for the follow (output.rig is the "
+        "lead's): alternatives/<k>/follow.rig.bvh and .rig.glb",
+    )
 
 
 class Spec(_Strict):
@@ -228,6 +234,12 @@ class Spec(_Strict):
         "tracked at half or twice a tempo inside it gets its beats and bars counted at that "
         "tempo (analysis grid_octave x2 or x1/2, with a warning). Default: the range the "
         "dataset declares (its manifest's style_tempo_bpm), else the tracked tempo",
+    )
+    couple: bool = Field(
+        False,
+        description="dance as a couple, the lead and the follow together, from the dataset's "
+        "takes danced together (its couple graph: dancegraph dataset build NAME --couple); "
+        "files alternatives/<k>/lead.bvh and follow.bvh",
     )
     output: Output = Field(default_factory=Output)
     callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(

@@ -311,6 +311,7 @@ def stitch(
     *,
     cut_beats: float = CUT_BEATS,
     blend: bool = True,
+    partners: Sequence[Sequence[tuple[Motion, np.ndarray]]] = (),
 ) -> tuple[Motion, dict]:
     """The dance of bars laid on the song: one node per music bar, cut where they match best.
 
@@ -323,7 +324,9 @@ def stitch(
     the least ``seam_distance``, then joined by ``hand_over`` (``blend`` off: root alignment
     only). Where the two nodes show the same motion at the bar line (distance below ``SAME``: bar
     b's node is the next bar of bar b-1's take) the take simply continues: the cut stays on the
-    line, nothing is blended, and it is no seam.
+    line, nothing is blended, and it is no seam. ``partners``: the pieces of other dancers on
+    the same beats (a couple's other partner) whose seam distances are added to the choice, so
+    every dancer stitched with the others as partners is cut at the same frames.
 
     Returns the motion of frames ``[frames[0, 0], frames[-1, 1])`` at ``fps`` and a report:
     ``cuts`` (B-1,) output frame where each later bar's node takes over, ``cut_beats`` (B-1,)
@@ -352,7 +355,7 @@ def stitch(
         return warps[b](u[np.asarray(k) - first] - 4.0 * b)
 
     cuts, distance, flow = _choose_cuts(
-        pieces, frames, fps, lambda k: u[k - first], source, cut_beats
+        [pieces, *partners], frames, fps, lambda k: u[k - first], source, cut_beats
     )
     bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]])
     # each bar's source frames over its segment [bounds[b], bounds[b+1]) and one frame either
@@ -418,18 +421,19 @@ def stitch(
     return dance, report
 
 
-def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndarray, ...]:
+def _choose_cuts(piece_sets, frames, fps, phase, source, cut_beats) -> tuple[np.ndarray, ...]:
     """Per bar line b >= 1: the output frame within ``cut_beats`` of it (and inside both nodes'
-    stored frames) where ``seam_distance`` between bar b-1's and bar b's nodes is least (within
+    stored frames) where ``seam_distance`` between bar b-1's and bar b's nodes, summed over the
+    dancers of ``piece_sets`` (each a list of pieces on the same beats), is least (within
     ``TIE``: the frame nearest the line); each bar keeps at least one frame. Returns the cuts,
     their distances and where the take continues (the distance on the line below ``SAME``: no
     window is searched there)."""
-    n_seams = len(pieces) - 1
+    n_seams = len(piece_sets[0]) - 1
     if n_seams < 1:
         return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0, dtype=bool)
     lines = frames[1:, 0].astype(np.int64)
-    on_line, _ = _distances(
-        pieces, source, fps, np.arange(n_seams), [lines[s : s + 1] for s in range(n_seams)]
+    on_line, _ = _summed_distances(
+        piece_sets, source, fps, np.arange(n_seams), [lines[s : s + 1] for s in range(n_seams)]
     )
     flow = on_line[:, 0] < SAME
     cuts, best = lines.copy(), on_line[:, 0].copy()
@@ -440,7 +444,7 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
         near = np.abs(phase(k) - 4.0 * (s + 1)) <= cut_beats + 1e-9
         windows.append(k[near | (k == lines[s])])
     if len(todo):
-        dist, valid = _distances(pieces, source, fps, todo, windows)
+        dist, valid = _summed_distances(piece_sets, source, fps, todo, windows)
     last = int(frames[0, 0])
     for row, s in enumerate(todo):
         k = windows[row]
@@ -450,6 +454,12 @@ def _choose_cuts(pieces, frames, fps, phase, source, cut_beats) -> tuple[np.ndar
         cuts[s], best[s] = k[i], d[i]
         last = int(cuts[s])
     return cuts, best, flow
+
+
+def _summed_distances(piece_sets, source, fps, seams, candidates):
+    """``_distances`` summed over the dancers of ``piece_sets``; valid where valid for all."""
+    parts = [_distances(p, source, fps, seams, candidates) for p in piece_sets]
+    return sum(d for d, _ in parts), np.logical_and.reduce([v for _, v in parts])
 
 
 def _distances(pieces, source, fps, seams, candidates):
