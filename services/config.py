@@ -8,6 +8,8 @@ in-process. Production sets PostgreSQL, Redis and an HTTP graph store through th
 
 from __future__ import annotations
 
+import math
+from collections import Counter
 from functools import lru_cache
 from pathlib import Path
 
@@ -27,6 +29,26 @@ DEFAULT_SECRETS = frozenset(
     {"dancegraph-dev-secret", "dancegraph-dev-preview-secret", "change-me", "change-me-too"}
 )
 MIN_SECRET_CHARS = 32
+MIN_SECRET_DISTINCT = 8  # 32 random hex digits hold 14 different ones on average
+MIN_SECRET_BITS = 80.0  # 32 random hex digits: 94 bits or more in 20,000 draws
+
+
+def secret_weakness(value: str) -> str | None:
+    """Why ``value`` is too weak to sign webhooks and preview links, or None when it is not:
+    shorter than ``MIN_SECRET_CHARS``, fewer than ``MIN_SECRET_DISTINCT`` different characters
+    (40 spaces, 36 × "a"), a repeated unit ("abcdefghij" × 4), or under ``MIN_SECRET_BITS`` by
+    its own character frequencies (length × Shannon entropy per character)."""
+    if len(value) < MIN_SECRET_CHARS:
+        return f"shorter than {MIN_SECRET_CHARS} characters"
+    counts = Counter(value)
+    if len(counts) < MIN_SECRET_DISTINCT:
+        return f"fewer than {MIN_SECRET_DISTINCT} different characters"
+    if (value + value).find(value, 1) < len(value):  # a rotation of itself: a repeated unit
+        return "a repeated pattern"
+    n = len(value)
+    if sum(-k * math.log2(k / n) for k in counts.values()) < MIN_SECRET_BITS:
+        return f"under {MIN_SECRET_BITS:g} bits by its character frequencies"
+    return None
 
 
 def _default_database_url() -> str:
@@ -158,10 +180,12 @@ class Settings(BaseSettings):
             return self
         for name in ("webhook_secret", "preview_secret"):
             value = getattr(self, name)
-            if value in DEFAULT_SECRETS or len(value) < MIN_SECRET_CHARS:
+            weakness = "public" if value in DEFAULT_SECRETS else secret_weakness(value)
+            if weakness is not None:
                 raise ValueError(
-                    f"DANCEGRAPH_{name.upper()} must be set to a private value of at least "
-                    f"{MIN_SECRET_CHARS} characters outside the embedded default"
+                    f"DANCEGRAPH_{name.upper()} must be set to a private, random value of at "
+                    f"least {MIN_SECRET_CHARS} characters outside the embedded default (this "
+                    f"one is {weakness}; e.g. openssl rand -hex 32)"
                 )
         return self
 

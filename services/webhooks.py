@@ -15,10 +15,15 @@ retried with exponential backoff (``base_delay · 2^n``, capped at ``max_delay``
 Targets (no internal port scanner): a ``callback_url`` must name a public address. Loopback,
 private, link-local (cloud metadata 169.254.169.254), carrier-grade NAT, multicast and reserved
 addresses, and metadata host names, are refused at submit (``check_callback_url``: 422
-``callback_url_forbidden``) and again at send time after DNS resolution (``resolve_target``),
-and the POST goes to the address that was checked (no second lookup to rebind). Redirects are
-never followed. ``Settings.webhook_allow_networks`` lists networks allowed anyway (a local test
-receiver). What a receiver answered is recorded as its status code only, never its body.
+``callback_url_forbidden``; a host name is resolved and every address it names checked) and
+again at send time (``resolve_target``), and the POST goes to the address that was checked (no
+second lookup to rebind; the Host header and TLS server name keep the name). An IPv6 address
+that carries an IPv4 one — IPv4-mapped ``::ffff:a.b.c.d``, IPv4-compatible ``::a.b.c.d``, NAT64
+``64:ff9b::/96``, 6to4 ``2002::/16``, Teredo ``2001::/32`` (server and de-obfuscated client) —
+is judged by the IPv4 addresses it carries; the local-use NAT64 prefix ``64:ff9b:1::/48`` is
+refused. Redirects are never followed. ``Settings.webhook_allow_networks`` lists networks
+allowed anyway (a local test receiver). What a receiver answered is recorded as its status code
+only, never its body.
 """
 
 from __future__ import annotations
@@ -57,6 +62,8 @@ _FORBIDDEN_NAMES = {
     "instance-data.ec2.internal",
 }
 _FORBIDDEN_SUFFIXES = (".localhost", ".internal", ".local")
+_NAT64 = ipaddress.ip_network("64:ff9b::/96")  # RFC 6052: the IPv4 address in the last 32 bits
+_NAT64_LOCAL = ipaddress.ip_network("64:ff9b:1::/48")  # RFC 8215: local-use translation
 
 IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 
@@ -68,11 +75,31 @@ class CallbackForbidden(DanceGraphError):
     status = 422
 
 
+def embedded_ipv4(ip: ipaddress.IPv6Address) -> list[ipaddress.IPv4Address]:
+    """The IPv4 addresses an IPv6 address reaches through: IPv4-mapped, IPv4-compatible
+    (``::a.b.c.d``, also ``::`` and ``::1``), NAT64 well-known prefix, 6to4, Teredo (server and
+    client); empty for a plain IPv6 address."""
+    value = int(ip)
+    if ip.ipv4_mapped is not None:
+        return [ip.ipv4_mapped]
+    if value >> 32 == 0 or ip in _NAT64:
+        return [ipaddress.IPv4Address(value & 0xFFFFFFFF)]
+    if ip.sixtofour is not None:
+        return [ip.sixtofour]
+    return list(ip.teredo) if ip.teredo is not None else []
+
+
 def _allowed(ip: IpAddress, allow: Sequence[str]) -> bool:
-    if ip.version == 6 and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
+    """Whether a callback may go to ``ip``: in an allowed network, else a public unicast address
+    (an IPv6 address carrying IPv4 ones: every one of those public)."""
     if any(ip in ipaddress.ip_network(net, strict=False) for net in allow):
         return True
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip in _NAT64_LOCAL:
+            return False
+        carried = embedded_ipv4(ip)
+        if carried:
+            return all(_allowed(v4, allow) for v4 in carried)
     return ip.is_global and not ip.is_multicast
 
 
@@ -87,48 +114,53 @@ def _host(url: str) -> str:
 
 def check_callback_url(url: str, allow: Sequence[str] = ()) -> None:
     """Refuse (``CallbackForbidden``, 422 ``callback_url_forbidden``) a callback URL whose host
-    is a non-public IP literal or a local/metadata host name; names are resolved at send time."""
+    is a non-public IP literal (in any IPv6 form that carries a non-public IPv4 address), a
+    local/metadata host name, or a name that resolves to a non-public address. A name that does
+    not resolve now passes: the send-time check (``resolve_target``) decides."""
+    try:
+        resolve_target(url, allow)
+    except ConnectionError:
+        pass
+
+
+def resolve_target(url: str, allow: Sequence[str] = ()) -> IpAddress:
+    """The one address to POST to: ``url``'s host (an IP literal, or a name resolved once),
+    every address it names checked.
+
+    Raises ``CallbackForbidden`` when any address is not public (a name that resolves to one
+    private address among public ones is refused too), ``ConnectionError`` when the name does
+    not resolve.
+    """
+    parts = urlsplit(url)
     host = _host(url)
     try:
-        ip = ipaddress.ip_address(host.strip("[]"))
+        addresses: list[IpAddress] = [ipaddress.ip_address(host.strip("[]"))]
     except ValueError:
         if host in _FORBIDDEN_NAMES or host.endswith(_FORBIDDEN_SUFFIXES):
             raise CallbackForbidden(
                 f"callback_url host {host!r} is a local or metadata name",
                 field="spec.callback_url",
             ) from None
-        return
-    if not _allowed(ip, allow):
+        addresses = _resolve(host, parts.port or (443 if parts.scheme == "https" else 80))
+    bad = [ip for ip in addresses if not _allowed(ip, allow)]
+    if bad:
         raise CallbackForbidden(
-            f"callback_url points at a non-public address ({ip})", field="spec.callback_url"
+            f"callback_url host {host!r} is or resolves to a non-public address ({bad[0]})",
+            field="spec.callback_url",
         )
+    return addresses[0]
 
 
-def resolve_target(url: str, allow: Sequence[str] = ()) -> IpAddress:
-    """The address to POST to: ``url``'s host resolved, every address checked as at submit.
-
-    Raises ``CallbackForbidden`` when any resolved address is not public (a name that resolves
-    to one private address among public ones is refused too), ``ConnectionError`` when the
-    name does not resolve.
-    """
-    check_callback_url(url, allow)
-    parts = urlsplit(url)
-    host = _host(url)
-    port = parts.port or (443 if parts.scheme == "https" else 80)
+def _resolve(host: str, port: int) -> list[IpAddress]:
+    """Every address ``host`` resolves to; ``ConnectionError`` when it resolves to none."""
     try:
-        infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM)
-    except OSError as exc:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (OSError, ValueError) as exc:  # ValueError: IDNA or NUL in the name
         raise ConnectionError(f"callback host {host!r} does not resolve") from exc
     addresses = [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
     if not addresses:
         raise ConnectionError(f"callback host {host!r} does not resolve")
-    bad = [ip for ip in addresses if not _allowed(ip, allow)]
-    if bad:
-        raise CallbackForbidden(
-            f"callback_url host {host!r} resolves to a non-public address ({bad[0]})",
-            field="spec.callback_url",
-        )
-    return addresses[0]
+    return addresses
 
 
 def _pinned(url: str, ip: IpAddress) -> tuple[str, dict, dict]:

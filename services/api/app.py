@@ -47,13 +47,14 @@ offending `field`; a failed job carries the same codes in `error`:
 | 415 | `content_type_unsupported`, `audio_undecodable`, `audio_unsupported_codec` | not multipart, not audio |
 | 422 | `audio_missing`, `audio_multiple`, `audio_empty`, `audio_too_short`, `audio_too_long` | the audio part |
 | 422 | `spec_malformed`, `spec_invalid`, `spec_unknown_field`, `unknown_dataset` | the spec part (also: non-finite numbers, text PostgreSQL cannot store, nesting deeper than 32, loose types) |
-| 422 | `callback_url_forbidden` | a `callback_url` at a loopback, private, link-local or metadata address |
+| 422 | `callback_url_forbidden` | a `callback_url` at (or resolving to) a loopback, private, link-local or metadata address |
 | 422 | `request_invalid`, `cursor_invalid`, `batch_too_large` | query, headers, batch size |
 | 503 | `queue_unavailable` | the broker is down; nothing was kept (`Retry-After`) |
-| 503 | `database_busy`, `database_unavailable`, `store_unavailable` | a burst or an outage: try again after `Retry-After` |
+| 503 | `database_busy`, `database_unavailable`, `store_unavailable`, `store_full` | a burst, an outage or a full disk: try again after `Retry-After` |
 | 503 | `preview_not_built` | the preview page's front end is not built on this server |
 
-Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`."""
+Job failures add codes of the pipeline, e.g. `no_beat`, `constraint_conflict`, `fbx_export_failed`,
+`result_missing` (the result left the store under the job), `store_full` (the disk stayed full)."""
 
 
 def operation_id(route: APIRoute) -> str:

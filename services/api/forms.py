@@ -2,7 +2,8 @@
 limits, its ``spec`` part parsed once (``dancegraph.spec.parse_spec``) and its ``audio`` parts.
 
 The body is refused (413) at the first byte past a limit, so an over-limit upload never fills
-memory or disk; the audio parts are then checked by ``services.common.uploads.check_audio``.
+memory or disk, and an ``audio`` part whose first bytes name no audio container is refused (415)
+as they arrive; the audio parts are then checked by ``services.common.uploads.check_audio``.
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ from fastapi import Request
 
 from dancegraph.spec import Spec, parse_spec
 from dancegraph.store import ObjectStore
-from services.api.multipart import MAX_TEXT_BYTES, Form, read_form
+from services.api.multipart import MAX_TEXT_BYTES, Form, HeadCheck, read_form
 from services.common.problems import ApiError
-from services.common.uploads import FilePart
+from services.common.uploads import FilePart, check_container, safe_filename
 from services.config import Settings
 
 # room for boundaries, part headers and a spec of the largest size around the audio parts
@@ -49,7 +50,7 @@ async def read_multipart(
         )
     limit = settings.max_upload_bytes * max(1, max_audio) + _FORM_OVERHEAD
     declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
+    if declared is not None and declared.isascii() and declared.isdigit() and int(declared) > limit:
         raise ApiError(
             413, "upload_too_large", f"the upload is larger than {limit} bytes", field="audio"
         )
@@ -60,7 +61,21 @@ async def read_multipart(
         max_file_bytes=settings.max_upload_bytes,
         max_files=max_audio + 1,  # the spec may come as a file part too
         too_many_code="batch_too_large" if max_audio > 1 else "audio_multiple",
+        check_head=_sniff_audio(batch=max_audio > 1),
     )
+
+
+def _sniff_audio(*, batch: bool) -> HeadCheck:
+    """Refuse an ``audio`` part (415 ``audio_undecodable``, field ``audio[i]`` in a batch) whose
+    first bytes name no audio container, before the rest of the body is read."""
+
+    def check(form: Form, part: FilePart, head: bytes) -> None:
+        if part.name == "audio":
+            index = len(form.files_named("audio")) - 1
+            field = f"audio[{index}]" if batch else "audio"
+            check_container(head, safe_filename(part.filename), field)
+
+    return check
 
 
 def form_spec(form: Form) -> Spec:

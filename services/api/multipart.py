@@ -9,10 +9,11 @@ Built on python-multipart's push parser (public API only).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
@@ -21,7 +22,7 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from services.common.problems import ApiError
-from services.common.uploads import FilePart
+from services.common.uploads import SNIFF_BYTES, FilePart
 
 if TYPE_CHECKING:
     from python_multipart.multipart import MultipartCallbacks
@@ -50,9 +51,25 @@ class Form:
             f.discard()
 
 
+# Called once per file part with the form so far (the part is its last file) and the part's first
+# ``SNIFF_BYTES`` bytes (fewer when the part is shorter; not called for an empty part); it raises
+# to refuse the part, and the rest of the body is then not read.
+HeadCheck = Callable[[Form, FilePart, bytes], None]
+
+
 class _Reader:
-    def __init__(self, tmp_dir: Path, *, max_file_bytes: int, max_files: int, too_many_code: str):
+    def __init__(
+        self,
+        tmp_dir: Path,
+        *,
+        max_file_bytes: int,
+        max_files: int,
+        too_many_code: str,
+        check_head: HeadCheck | None,
+    ):
         self.tmp_dir = tmp_dir
+        self.check_head = check_head
+        self._head: bytearray | None = None  # a file part's first bytes until they are checked
         self.max_file_bytes = max_file_bytes
         self.max_files = max_files
         self.too_many_code = too_many_code
@@ -103,6 +120,7 @@ class _Reader:
             fd, tmp = tempfile.mkstemp(dir=self.tmp_dir, prefix=".upload-")
             self._fh = os.fdopen(fd, "wb")
             self._digest = hashlib.sha256()
+            self._head = bytearray() if self.check_head is not None else None
             self._file = FilePart(
                 self._name, options[b"filename"].decode("utf-8", "replace"), Path(tmp)
             )
@@ -124,6 +142,10 @@ class _Reader:
                     f"{self._file.filename or 'the file'} is larger than {self.max_file_bytes} bytes",
                     field=self._name,
                 )
+            if self._head is not None:  # checked before the part's bytes are written
+                self._head += chunk[: SNIFF_BYTES - len(self._head)]
+                if len(self._head) >= SNIFF_BYTES:
+                    self._check_head()
             assert self._fh is not None
             self._digest.update(chunk)
             self._fh.write(chunk)
@@ -138,8 +160,14 @@ class _Reader:
                 )
             self._text.extend(chunk)
 
+    def _check_head(self) -> None:
+        head, self._head = self._head, None
+        if head and self.check_head is not None and self._file is not None:
+            self.check_head(self.form, self._file, bytes(head))
+
     def on_part_end(self) -> None:
         if self._file is not None:
+            self._check_head()  # a part shorter than SNIFF_BYTES
             assert self._fh is not None
             self._fh.close()
             self._fh = None
@@ -152,8 +180,11 @@ class _Reader:
         self._text = None
 
     def close(self) -> None:
+        """Close the open temporary file, if any (it is being discarded: a failed flush, e.g. on
+        a full disk, does not matter)."""
         if self._fh is not None:
-            self._fh.close()
+            with contextlib.suppress(OSError):
+                self._fh.close()
             self._fh = None
 
 
@@ -165,8 +196,13 @@ async def read_form(
     max_file_bytes: int,
     max_files: int,
     too_many_code: str = "too_many_files",
+    check_head: HeadCheck | None = None,
 ) -> Form:
-    """Parse a multipart body from ``stream``; on any error every temporary file is removed."""
+    """Parse a multipart body from ``stream``; on any error every temporary file is removed.
+
+    ``check_head`` (see ``HeadCheck``) refuses a file part by its first bytes while it streams
+    in, so a refused part is never written whole. A full disk raises the ``OSError`` (ENOSPC),
+    answered 503 ``store_full`` by ``services.common.problems``."""
     _, params = parse_options_header(content_type)
     boundary = params.get(b"boundary")
     if not boundary:
@@ -178,7 +214,11 @@ async def read_form(
         )
     tmp_dir.mkdir(parents=True, exist_ok=True)
     reader = _Reader(
-        tmp_dir, max_file_bytes=max_file_bytes, max_files=max_files, too_many_code=too_many_code
+        tmp_dir,
+        max_file_bytes=max_file_bytes,
+        max_files=max_files,
+        too_many_code=too_many_code,
+        check_head=check_head,
     )
     callbacks: MultipartCallbacks = {
         "on_part_begin": reader.on_part_begin,

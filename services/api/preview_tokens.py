@@ -8,15 +8,24 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
+import re
 import time
 
 from services.common.problems import ApiError
 from services.config import Settings
 
+_EXPIRY = re.compile(r"[0-9]{1,12}")
+
 
 def _signature(secret: str, job_id: str, expires: int) -> str:
     mac = hmac.new(secret.encode(), f"preview:{job_id}:{expires}".encode(), hashlib.sha256)
     return base64.urlsafe_b64encode(mac.digest()).decode().rstrip("=")
+
+
+def _expiry(text: str) -> int | None:
+    """A token's expiry time: 1 to 12 ASCII digits (``str.isdigit`` also takes ``²`` or ``٣``,
+    which ``int`` refuses or reads as another number), else None."""
+    return int(text) if _EXPIRY.fullmatch(text) else None
 
 
 def make_token(settings: Settings, job_id: str, now: float | None = None) -> str:
@@ -29,19 +38,19 @@ def check_token(settings: Settings, job_id: str, token: str, now: float | None =
     """Accept a token made by ``make_token`` for this job and not expired; else 401
     ``preview_token_invalid`` (malformed, forged or another job's) or ``preview_token_expired``."""
     expires_text, _, signature = token.partition(".")
-    expected = (
-        _signature(settings.preview_secret, job_id, int(expires_text))
-        if expires_text.isdigit() and len(expires_text) <= 12
-        else ""
-    )
-    if not expected or not hmac.compare_digest(expected, signature):
+    expires = _expiry(expires_text)
+    if (
+        expires is None
+        or not signature.isascii()  # compare_digest raises TypeError on other text
+        or not hmac.compare_digest(_signature(settings.preview_secret, job_id, expires), signature)
+    ):
         raise ApiError(
             401,
             "preview_token_invalid",
             "the preview token is not valid for this job; take preview_url from GET /v1/jobs/{id}",
             field="query.token",
         )
-    if int(expires_text) < (now if now is not None else time.time()):
+    if expires < (now if now is not None else time.time()):
         raise ApiError(
             401,
             "preview_token_expired",

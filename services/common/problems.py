@@ -7,7 +7,9 @@ problems also list every failure in ``errors``. Bad input is never a 500.
 
 from __future__ import annotations
 
+import errno
 import logging
+import re
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -80,6 +82,28 @@ _TITLES = {
 }
 
 
+# What a problem echoes of the request is bounded: a 1 MB spec key or a 60 KB job id comes back
+# as its first ECHO_CHARS characters and "…", so an answer stays a few kilobytes whatever was sent.
+ECHO_CHARS = 96
+TEXT_CHARS = 1024  # one detail, field or message at most
+MAX_ERRORS = 32  # listed failures at most (a spec of 10,000 unknown keys lists the first 32)
+_LONG_RUN = re.compile(rf"\S{{{ECHO_CHARS + 1},}}")
+
+
+def bounded(text: str, limit: int = TEXT_CHARS) -> str:
+    """``text`` with each run of non-blank characters longer than ``ECHO_CHARS`` cut to its first
+    ``ECHO_CHARS`` and ``…``, and the whole cut to ``limit`` characters (``…`` included)."""
+    text = _LONG_RUN.sub(lambda m: m.group()[:ECHO_CHARS] + "…", text)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _bounded_errors(errors: list[dict]) -> list[dict]:
+    return [
+        {k: bounded(v) if isinstance(v, str) else v for k, v in err.items()}
+        for err in errors[:MAX_ERRORS]
+    ]
+
+
 def problem_response(
     status: int,
     code: str,
@@ -90,17 +114,18 @@ def problem_response(
     errors: list[dict] | None = None,
     headers: dict | None = None,
 ) -> JSONResponse:
+    """The problem+json answer; every text in it is ``bounded`` (they may echo the request)."""
     body: dict[str, Any] = {
         "type": TYPE_BASE + code,
         "title": _TITLES.get(status, "Error"),
         "status": status,
-        "detail": detail,
+        "detail": bounded(detail),
         "code": code,
-        "field": field,
-        "instance": instance,
+        "field": None if field is None else bounded(field),
+        "instance": None if instance is None else bounded(instance),
     }
     if errors:
-        body["errors"] = errors
+        body["errors"] = _bounded_errors(errors)
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
@@ -153,6 +178,15 @@ def install(app: FastAPI) -> None:
         for exc_type in exc_types:
             app.add_exception_handler(exc_type, _unavailable(code, detail, retry_after))
 
+    store_full = _unavailable(*STORE_FULL)
+
+    @app.exception_handler(OSError)
+    async def _os_error(request: Request, exc: OSError):
+        if is_disk_full(exc):  # the upload's scratch file or the store's disk
+            return await store_full(request, exc)
+        log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+        return internal_error_response(request.url.path)
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
@@ -176,6 +210,23 @@ _UNAVAILABLE = (
         5,
     ),
 )
+
+
+# A full disk or quota: space comes back (the reaper sweeps scratch, an operator adds some).
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+STORE_FULL = ("store_full", "the object store has no space left; try again later", 60)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc``, or an error it was raised from, is a full disk or quota (ENOSPC, EDQUOT)."""
+    seen: BaseException | None = exc
+    for _ in range(8):  # a short cause chain; never a cycle
+        if seen is None:
+            return False
+        if isinstance(seen, OSError) and seen.errno in DISK_FULL_ERRNOS:
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def _unavailable(code: str, detail: str, retry_after: int):

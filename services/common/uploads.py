@@ -23,7 +23,7 @@ from dancegraph.store import ObjectStore, blob_key
 from services.common.problems import ApiError
 from services.config import Settings
 
-_SNIFF_BYTES = 64
+SNIFF_BYTES = 64  # enough for every container signature ``sniff_container`` knows
 
 
 @dataclass
@@ -70,6 +70,20 @@ def sniff_container(head: bytes) -> str | None:
             return "mp3"
         return "aac"
     return None
+
+
+def check_container(head: bytes, filename: str, field: str) -> str:
+    """The audio container named by a file's first ``SNIFF_BYTES`` bytes; 415
+    ``audio_undecodable`` (naming ``filename`` and ``field``) when none matches."""
+    container = sniff_container(head)
+    if container is None:
+        raise ApiError(
+            415,
+            "audio_undecodable",
+            f"{filename} is not an audio file (unknown container signature)",
+            field=field,
+        )
+    return container
 
 
 @dataclass
@@ -180,15 +194,7 @@ def _check_file(part: FilePart, settings: Settings, field: str) -> CheckedAudio:
     if part.size == 0:
         raise AudioError(f"{filename} is empty (0 bytes)", code="audio_empty", field=field)
     with open(part.path, "rb") as fh:
-        head = fh.read(_SNIFF_BYTES)
-    container = sniff_container(head)
-    if container is None:
-        raise ApiError(
-            415,
-            "audio_undecodable",
-            f"{filename} is not an audio file (unknown container signature)",
-            field=field,
-        )
+        container = check_container(fh.read(SNIFF_BYTES), filename, field)
     duration = _header_duration(part.path, filename, field)
     if duration is not None and duration < settings.min_audio_seconds:
         raise AudioError(

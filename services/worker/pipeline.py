@@ -218,7 +218,8 @@ def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
 
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
     """Add ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there), and
-    with ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``."""
+    with ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``. Raises
+    DanceGraphError ``result_missing`` when the published result leaves the store meanwhile."""
     from services.worker import fbx_export
 
     prefix = jobs.result_key(job_id)
@@ -226,18 +227,22 @@ def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig
     if on_rig is not None:
         todo += [(name, on_rig) for name in jobs.bvh_files(store, job_id, rig=True)]
     for i, (name, writer) in enumerate(todo):
-        files = jobs.result_files(store, job_id)
+        files = published_result(store, job_id)
         fbx_name = name[: -len(".bvh")] + ".fbx"
         if fbx_name in files:
             continue
         tmp = store.temp_dir(f"fbx-{job_id}")
         try:
             out = tmp / fbx_name.rsplit("/", 1)[1]
+            bvh = _result_file(store, files, name)
             if writer is None:
-                fbx_export.export(store.local_path(files[name]), out, fps=fps)
+                fbx_export.export(bvh, out, fps=fps)
             else:
-                writer(store.local_path(files[name]), out)
-            store.publish_more(prefix, {fbx_name: out})
+                writer(bvh, out)
+            try:
+                store.publish_more(prefix, {fbx_name: out})
+            except FileNotFoundError as exc:  # the manifest went during the export
+                raise _result_missing() from exc
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         if on_file is not None:
@@ -249,10 +254,40 @@ def wants_fbx(spec: Spec) -> bool:
     return "fbx" in spec.output.formats
 
 
-def finalize(store: ObjectStore, job_id: str) -> bool:
-    """Mark the job succeeded with its alternatives, costs and files; False if already final."""
+def published_result(store: ObjectStore, job_id: str) -> dict[str, str]:
+    """The job's published result files (``jobs.result_files``); raises DanceGraphError
+    ``result_missing`` when the store no longer holds them (emptied or lost under the job),
+    so the job fails with that name instead of an internal error."""
     files = jobs.result_files(store, job_id)
-    found = json.loads(store.get_bytes(files[SEARCH_FILE]))
+    if SEARCH_FILE not in files:
+        raise _result_missing()
+    return files
+
+
+def _result_file(store: ObjectStore, files: dict[str, str], name: str) -> Path:
+    """A local copy of the published result file ``name``; ``result_missing`` when it is gone."""
+    try:
+        return store.local_path(files[name])
+    except (KeyError, FileNotFoundError) as exc:
+        raise _result_missing() from exc
+
+
+def _result_missing() -> DanceGraphError:
+    return DanceGraphError(
+        "the job's rendered result is no longer in the object store (removed while the job ran);"
+        " submit the song again",
+        code="result_missing",
+    )
+
+
+def finalize(store: ObjectStore, job_id: str) -> bool:
+    """Mark the job succeeded with its alternatives, costs and files; False if already final.
+    Raises DanceGraphError ``result_missing`` when the result left the store."""
+    files = published_result(store, job_id)
+    try:
+        found = json.loads(store.get_bytes(files[SEARCH_FILE]))
+    except FileNotFoundError as exc:
+        raise _result_missing() from exc
     result = dict(found)
     result["files"] = sorted(f for f in files if f != SEARCH_FILE)
     with session_scope() as session:

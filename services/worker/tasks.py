@@ -3,11 +3,15 @@
 Failure policy, the same for every task:
 - ``DanceGraphError`` (the input's fault: bad audio, no beat, unknown dataset, impossible
   constraint) → the job fails with the error's stable ``code``; no retry.
-- transient errors (database, broker, object-store or graph-store connection; a full disk; a
+- transient errors (database, broker, object-store or graph-store connection; a
   DanceGraphError with status 503 such as ``graphstore_unavailable``) → the job goes back to
   ``queued`` and the task retries with exponential backoff, at most ``MAX_RETRIES`` times; then
   the job fails with ``service_unavailable``. These retries are not crashes: the reaper's
   ``worker_lost`` budget counts only jobs it found abandoned (``Job.crashes``).
+- a full disk or quota (ENOSPC, EDQUOT) → the same, but on a slower schedule that outlasts a
+  disk-full episode (``disk_full_delay``: 30 s doubling to 5 min, ``DISK_FULL_RETRIES`` tries,
+  about two hours in all) until an operator or the reaper frees space; then the job fails with
+  ``store_full``.
 - the soft time limit → the job fails with ``job_timeout``; any other exception (a bug) → the
   job fails with ``internal_error`` and the traceback is logged.
 A job's error message never carries an exception's own text (it may name hosts, ports or
@@ -16,7 +20,6 @@ paths): that goes to the log.
 
 from __future__ import annotations
 
-import errno
 import logging
 import uuid
 
@@ -27,6 +30,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from dancegraph.errors import DanceGraphError
 from services import jobs, webhooks
+from services.common.problems import is_disk_full
 from services.config import get_settings
 from services.db import session_scope
 from services.worker import enqueue, logs, pipeline, state
@@ -44,6 +48,9 @@ log = logging.getLogger("dancegraph.worker")
 MAX_RETRIES = 5
 RETRY_BASE_S = 2.0
 RETRY_MAX_S = 120.0
+DISK_FULL_RETRIES = 30
+DISK_FULL_BASE_S = 30.0
+DISK_FULL_MAX_S = 300.0  # under the reaper's job_timeout_s, which re-sends older queued jobs
 
 TRANSIENT_ERRORS: tuple[type[BaseException], ...] = (
     sqlalchemy.exc.OperationalError,
@@ -61,17 +68,19 @@ def retry_delay(retries: int) -> float:
     return min(RETRY_MAX_S, RETRY_BASE_S * (2**retries))
 
 
-# A full disk or quota: space comes back (the reaper sweeps, an operator adds some).
-_TRANSIENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+def disk_full_delay(retries: int) -> float:
+    """Seconds before retry number ``retries`` (0-based) of a job stopped by a full disk: 30, 60,
+    120, 240, then 300 each; ``DISK_FULL_RETRIES`` of them wait 8,250 s (2.3 h) in all."""
+    return min(DISK_FULL_MAX_S, DISK_FULL_BASE_S * (2**retries))
 
 
 def is_transient(exc: BaseException) -> bool:
     """A failure of the machinery, not of the input: worth retrying later."""
+    if is_disk_full(exc):  # space comes back (the reaper sweeps, an operator adds some)
+        return True
     if isinstance(exc, DanceGraphError):
         # e.g. graphstore_unavailable: the graph store's client answers 503 for a lost connection
         return getattr(exc, "status", 400) == 503
-    if isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS:
-        return True
     return isinstance(exc, TRANSIENT_ERRORS)
 
 
@@ -108,19 +117,24 @@ def _run(task, job_id: str, step) -> None:
 
 
 def _retry_or_give_up(task, job_id: str, exc: Exception) -> None:
-    """Requeue the job and retry the task with backoff; fail it once the retries are spent."""
-    if task.request.retries >= MAX_RETRIES:
+    """Requeue the job and retry the task with backoff (the disk-full schedule for a full disk);
+    fail it (``store_full`` / ``service_unavailable``) once the retries are spent."""
+    disk_full = is_disk_full(exc)
+    budget = DISK_FULL_RETRIES if disk_full else MAX_RETRIES
+    retries = task.request.retries
+    if retries >= budget:
         log.error("transient errors exhausted the retries", exc_info=True)
-        _fail_quietly(
-            job_id,
-            "service_unavailable",
-            f"a service stayed unavailable through {MAX_RETRIES} retries ({type(exc).__name__})",
+        code, what = (
+            ("store_full", "the store stayed full")
+            if disk_full
+            else ("service_unavailable", "a service stayed unavailable")
         )
+        _fail_quietly(job_id, code, f"{what} through {budget} retries ({type(exc).__name__})")
         return
-    delay = retry_delay(task.request.retries)
+    delay = disk_full_delay(retries) if disk_full else retry_delay(retries)
     log.warning("transient error; retrying", extra={"delay_s": delay, "error": str(exc)})
     _requeue_quietly(job_id)
-    raise task.retry(countdown=delay, exc=exc, max_retries=MAX_RETRIES) from exc
+    raise task.retry(countdown=delay, exc=exc, max_retries=budget) from exc
 
 
 def _fail_quietly(job_id: str, code: str, message: str) -> None:

@@ -14,7 +14,7 @@ from dancegraph.paths import REPO_ROOT
 from services.config import Settings
 
 PG = "postgresql+psycopg://postgres@127.0.0.1:5432/none"
-GOOD = "x" * 40
+GOOD = "5f0c9e2a7b41d83e6a9c0f17b2d4e85a3c6f9b0e"  # 40 hex digits, as openssl rand -hex gives
 
 
 @pytest.mark.parametrize(

@@ -160,7 +160,8 @@ def test_a_name_resolving_to_a_local_address_is_refused_at_send_time():
     with Receiver() as rx:
         port = rx.url.split(":")[2].split("/")[0]
         url = f"http://{name}:{port}/hook"
-        webhooks.check_callback_url(url)  # a name: passes the submit check
+        with pytest.raises(webhooks.CallbackForbidden):
+            webhooks.check_callback_url(url)  # resolved at submit too
         result = webhooks.deliver(url, b"{}", SECRET, attempts=1, sleep=lambda s: None)
     assert not result.ok and result.error.startswith("callback_url_forbidden")
     assert rx.calls == []
