@@ -61,9 +61,11 @@ def render_page(
     poses: list[str],
     assets: str = ASSETS_PATH,
     rig_poses: list[str] | None = None,
+    rig_models: list[str] | None = None,
 ) -> HTMLResponse:
     """The page with its config: URLs of the song, the timeline and each alternative's poses
-    (``rig_poses``: the same alternatives on the user's rig, when the result has them).
+    (``rig_poses``: the same alternatives on the user's rig, when the result has them;
+    ``rig_models``: each alternative's ``.rig.glb``, the character the page draws).
 
     503 ``preview_not_built`` when the front end has not been built.
     """
@@ -77,6 +79,8 @@ def render_page(
     config = {"title": title, "audio": audio, "timeline": timeline, "poses": poses}
     if rig_poses:
         config["rig_poses"] = rig_poses
+    if rig_models:
+        config["rig_models"] = rig_models
     # '<' escaped so no string in the config can close the <script> element
     text = json.dumps(config).replace("<", "\\u003c")
     html = template.read_text(encoding="utf-8")
@@ -207,6 +211,7 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
     app.include_router(static_router)
 
     on_rig = (folder / "alternatives" / "0.rig.bvh").is_file()
+    models = on_rig and (folder / "alternatives" / "0.rig.glb").is_file()
 
     @app.get("/", response_class=HTMLResponse)
     def page():
@@ -219,7 +224,15 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
             rig_poses=[f"poses/{k}.json?skeleton=rig" for k in range(n_alternatives)]
             if on_rig
             else None,
+            rig_models=[f"rig/{k}.glb" for k in range(n_alternatives)] if models else None,
         )
+
+    @app.get("/rig/{k}.glb")
+    def rig_model(k: int = PathParam(..., ge=0, le=99)):
+        path = folder / "alternatives" / f"{k}.rig.glb"
+        if not path.is_file():
+            raise NotFoundError(f"no alternative {k} on a rig", code="result_not_found", field="k")
+        return FileResponse(path, media_type="model/gltf-binary")
 
     @app.get("/timeline.json")
     def timeline_file(request: Request):

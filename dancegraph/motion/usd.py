@@ -131,9 +131,10 @@ def write_usd(motion, path: str | Path, rig=None) -> dict:
     anim.CreateScalesAttr().Set(Vt.Vec3hArray.FromNumpy(np.ones((sk.n_joints, 3), np.float16)))
     rot_xyzw = local.astype(np.float32)  # GfQuatf's memory order: imaginary part, then real
     trans = moves.astype(np.float32)
-    for f in range(motion.n_frames):
-        t_attr.Set(Vt.Vec3fArray.FromNumpy(trans[f]), f)
-        r_attr.Set(Vt.QuatfArray.FromNumpy(rot_xyzw[f]), f)
+    with Sdf.ChangeBlock():  # one change notice for all samples, not one per Set
+        for f in range(motion.n_frames):
+            t_attr.Set(Vt.Vec3fArray.FromNumpy(trans[f]), f)
+            r_attr.Set(Vt.QuatfArray.FromNumpy(rot_xyzw[f]), f)
     binding = UsdSkel.BindingAPI.Apply(skel.GetPrim())
     binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
     n_vertices = _write_mesh(stage, root, skel, rig)

@@ -5,6 +5,7 @@
 // server puts into the page (API: signed ?token= URLs; `dancegraph preview`: local paths).
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
+import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
 
 const config = JSON.parse(document.getElementById("preview-config").textContent);
 const $ = (id) => document.getElementById(id);
@@ -17,6 +18,9 @@ const state = {
   timeline: null,
   tracks: {}, // per pose URL: Promise of {fps, frames, joints, parents, positions: Float32Array (m)}
   skeleton: "library", // or "rig" where the job was also written on the user's rig
+  view: "character", // on a rig with a mesh: the skinned character, or "skeleton" (capsules)
+  models: {}, // per GLB URL: Promise of {root, mixer, skinned} (alternatives/<k>.rig.glb)
+  model: null, // the character drawn now, or null
   track: null,
   alternative: 0,
   bar: -1,
@@ -359,6 +363,41 @@ function sameSkeleton(a, b) {
   return a && b && a.joints.length === b.joints.length && a.joints.every((n, i) => n === b.joints[i]);
 }
 
+// the dance on the user's own character (config.rig_models: each alternative's .rig.glb)
+function loadModel(k) {
+  const url = config.rig_models[k];
+  if (!state.models[url]) {
+    state.models[url] = new GLTFLoader().loadAsync(url).then((gltf) => {
+      let skinned = false;
+      gltf.scene.traverse((o) => {
+        if (o.isSkinnedMesh) {
+          skinned = true;
+          o.frustumCulled = false;
+          o.material = new THREE.MeshStandardMaterial({ color: 0xc8a27a, roughness: 0.7 });
+        }
+      });
+      const mixer = new THREE.AnimationMixer(gltf.scene);
+      if (gltf.animations.length) mixer.clipAction(gltf.animations[0]).play();
+      return { root: gltf.scene, mixer, skinned };
+    });
+  }
+  return state.models[url];
+}
+
+// the character in view where the rig has a mesh and the character view is chosen
+async function showModel(k) {
+  let model = null;
+  if (state.skeleton === "rig" && config.rig_models && state.view === "character") {
+    model = await loadModel(k);
+    if (!model.skinned) model = null;
+  }
+  if (state.model && state.model !== model) scene.remove(state.model.root);
+  if (model && state.model !== model) scene.add(model.root);
+  state.model = model;
+  for (const mesh of [bones, joints]) if (mesh) mesh.visible = !model;
+  $("view-toggle").textContent = model ? "Skeleton view" : "Character view";
+}
+
 async function setAlternative(k) {
   k = Number(k);
   const track = await loadTrack(k);
@@ -371,6 +410,7 @@ async function setAlternative(k) {
   }
   state.track = track;
   labelNodes();
+  await showModel(k);
   return k;
 }
 
@@ -379,6 +419,7 @@ function frame() {
     const t = audio.currentTime;
     state.pose = samplePose(state.track, t, state.pose);
     drawPose(state.track, state.pose);
+    if (state.model) state.model.mixer.setTime(t);
     const b = barAt(t);
     if (b !== state.bar) {
       for (const el of $("bars").children) el.classList.toggle("current", Number(el.dataset.bar) === b);
@@ -403,6 +444,11 @@ function wireControls() {
   audio.addEventListener("ended", () => (play.textContent = "Play"));
   $("seek").addEventListener("input", (e) => seek(Number(e.target.value)));
   $("alternative").addEventListener("change", (e) => setAlternative(e.target.value).catch(fail));
+  if (config.rig_models) {
+    const toggle = $("view-toggle");
+    toggle.hidden = false;
+    toggle.addEventListener("click", () => setView(state.view === "character" ? "skeleton" : "character"));
+  }
   if (config.rig_poses) {
     $("skeleton-label").hidden = false;
     $("skeleton").addEventListener("change", (e) => {
@@ -418,8 +464,17 @@ function wireControls() {
   });
 }
 
+function setView(view) {
+  state.view = view;
+  return setAlternative(state.alternative).catch(fail);
+}
+
 async function main() {
   $("title").textContent = config.title || "";
+  if (config.rig_models && config.rig_poses) {
+    state.skeleton = "rig"; // a character of one's own is what one wants to see first
+    $("skeleton").value = "rig";
+  }
   wireControls();
   requestAnimationFrame(frame);
   state.timeline = await getJson(config.timeline);
@@ -462,6 +517,23 @@ window.__preview = {
   get alternatives() {
     return state.timeline ? state.timeline.alternatives.length : 0;
   },
+  get view() {
+    return state.view;
+  },
+  // the skinned character in view: its mesh's world bounding box, or null (skeleton view)
+  character: () => {
+    if (!state.model) return null;
+    const box = new THREE.Box3();
+    state.model.root.updateMatrixWorld(true);
+    state.model.root.traverse((o) => {
+      if (o.isSkinnedMesh) {
+        o.computeBoundingBox();
+        box.union(o.boundingBox.clone().applyMatrix4(o.matrixWorld));
+      }
+    });
+    return { min: box.min.toArray(), max: box.max.toArray() };
+  },
+  setView,
   pose: () => (state.pose ? Array.from(state.pose) : null),
   poseAt: (t) => (state.track ? Array.from(samplePose(state.track, t)) : null),
   seek,

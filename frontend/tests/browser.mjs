@@ -115,6 +115,21 @@ try {
       pose: window.__preview.pose(),
     })),
   };
+  // a rig with a mesh: the page opens on the skinned character, the skeleton one click away
+  out.character = null;
+  if (await page.evaluate(() => !document.getElementById("view-toggle").hidden)) {
+    await poseAt(switchTime);
+    const shown = await page.evaluate(() => ({ view: window.__preview.view, box: window.__preview.character() }));
+    await page.screenshot({ path: screenshot.replace(/\.png$/, "-character.png") });
+    await page.click("#view-toggle");
+    await page.waitForFunction(() => window.__preview.character() === null, null, { timeout: 20000 });
+    await frames();
+    const toggled = await page.evaluate(() => ({ view: window.__preview.view, box: window.__preview.character() }));
+    out.character = { shown, toggled, screenshot: screenshot.replace(/\.png$/, "-character.png") };
+    const n = await page.evaluate(() => window.__preview.pose().length);
+    await page.selectOption("#skeleton", "library");
+    await page.waitForFunction((m) => window.__preview.pose().length !== m, n, { timeout: 20000 });
+  }
   // a result on the user's rig: the Skeleton select switches to the rig's joints
   out.rig = null;
   if (await page.evaluate(() => !document.getElementById("skeleton-label").hidden)) {

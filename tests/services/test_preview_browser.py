@@ -191,3 +191,53 @@ def test_preview_page_switches_to_the_rig_in_chromium(tmp_path_factory, tmp_path
     pose = np.asarray(seen["rig"]["after"]).reshape(-1, 3)
     assert len(pose) == len(rig_joints) != len(library_joints)
     assert 0.5 < pose[rig.joint("hips"), 1] < 1.3  # metres: the centimetre rig drawn to scale
+
+
+def test_preview_page_shows_the_character_in_chromium(tmp_path_factory, tmp_path):
+    """A result on a rig with a skinned mesh: the page opens on the character (its ``.rig.glb``
+    skinned by three.js), standing on the floor at its size; one click shows the skeleton."""
+    from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.fbx import fbx_available
+    from dancegraph.motion.retarget import RigOutput
+    from dancegraph.motion.rig import load_rig
+    from services.preview_server import create_local_app
+    from tests.motion.rigs import make_rigs
+
+    node = _require_browser()
+    if not fbx_available():
+        pytest.skip("the skinned test rig is made by Blender (scripts/install-blender.sh)")
+    root = synthesized(tmp_path_factory)
+    out = tmp_path / "out"
+    shutil.copytree(root / "out", out)
+    rig_path = make_rigs(tmp_path / "rigs") / "parented.glb"  # cm, Z up under a parent node
+    rig = load_rig(rig_path)
+    hook = RigOutput(rig, rig_path, ["bvh", "glb"])
+    for k in range(2):
+        hook(k, read_bvh(out / f"alternatives/{k}.bvh"), out)
+    artifacts = Path(os.environ.get("DANCEGRAPH_TEST_ARTIFACTS", REPO / "test-artifacts"))
+    artifacts.mkdir(parents=True, exist_ok=True)
+    shot = artifacts / "preview-rig.png"
+    base, stop = _serve(create_local_app(out, root / "song.wav"))
+    try:
+        run = subprocess.run(
+            [node, "tests/browser.mjs", base + "/", str(shot), "1.0"],
+            cwd=FRONTEND,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "CHROMIUM": CHROMIUM},
+        )
+    finally:
+        stop()
+    assert run.returncode == 0, run.stderr[-3000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    assert seen["error"] is None and seen["console_errors"] == [] and seen["page_errors"] == []
+    assert seen["failed_requests"] == []
+    shown, toggled = seen["character"]["shown"], seen["character"]["toggled"]
+    assert shown["view"] == "character" and shown["box"] is not None
+    low, high = np.asarray(shown["box"]["min"]), np.asarray(shown["box"]["max"])
+    assert abs(low[1] - rig.floor) < 0.05  # on the floor, in metres (not centimetres)
+    assert 0.8 * rig.height() < high[1] - low[1] < 1.2 * rig.height()  # upright, at its size
+    assert toggled["view"] == "skeleton" and toggled["box"] is None
+    assert Path(seen["character"]["screenshot"]).stat().st_size > 10_000
+    assert seen["rig"] is not None  # the skeleton switch still works beside it

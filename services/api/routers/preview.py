@@ -61,9 +61,12 @@ def pose_cache_prefix(job_id: str) -> str:
     return jobs.result_key(job_id, "preview")
 
 
-def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool]:
-    """How many alternatives the job has (library ``<k>.bvh``), and whether they are on a rig."""
-    return len(jobs.bvh_files(store, job.id)), bool(jobs.bvh_files(store, job.id, rig=True))
+def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool, bool]:
+    """How many alternatives the job has (library ``<k>.bvh``), whether they are on a rig, and
+    whether as the rig's character too (``<k>.rig.glb``)."""
+    on_rig = bool(jobs.bvh_files(store, job.id, rig=True))
+    models = on_rig and "alternatives/0.rig.glb" in jobs.result_files(store, job.id)
+    return len(jobs.bvh_files(store, job.id)), on_rig, models
 
 
 @router.get(
@@ -77,7 +80,7 @@ def preview_page(
     settings: Settings = Depends(get_settings_dep),
     store: ObjectStore = Depends(get_store),
 ):
-    n_alternatives, on_rig = _alternatives(store, job)
+    n_alternatives, on_rig, models = _alternatives(store, job)
     if not n_alternatives:
         raise ApiError(
             404, "result_not_found", f"job {job.id} has no dance to show", field="job_id"
@@ -93,6 +96,7 @@ def preview_page(
         rig_poses=[f"{base}/poses/{k}.json{q}&skeleton=rig" for k in range(n_alternatives)]
         if on_rig
         else None,
+        rig_models=[f"{base}/rig/{k}.glb{q}" for k in range(n_alternatives)] if models else None,
     )
 
 
@@ -125,6 +129,24 @@ def preview_timeline(
     if key is None:
         raise ApiError(404, "result_not_found", f"job {job.id} has no timeline", field="job_id")
     return json_bytes_response(request, store.get_bytes(key))
+
+
+@router.get(
+    "/{job_id}/preview/rig/{k}.glb",
+    summary="Alternative k on the job's rig as GLB (the character the preview page draws)",
+    response_class=FileResponse,
+    responses={200: {"content": {"model/gltf-binary": {}}}, **ERRORS},
+)
+def preview_rig_model(
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    job: Job = Depends(preview_job),
+    store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
+):
+    key = jobs.result_files(store, job.id).get(f"alternatives/{k}.rig.glb")
+    if key is None:
+        raise ApiError(404, "result_not_found", f"no alternative {k} on a rig", field="k")
+    return result_response(store, settings, key, f"{job.id}-{k}.rig.glb", "model/gltf-binary")
 
 
 @router.get(

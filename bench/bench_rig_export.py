@@ -1,0 +1,89 @@
+"""Rig output benchmark (issue 38): a 3-minute dance written on a skinned Mixamo-style rig.
+
+Targets: FBX <= 3 s with a warm exporter (one Blender child kept between files), USD <= 1 s.
+The dance is real salsa: the 60_NN takes at their true 60 fps resampled to 30 fps and laid end to
+end (no seam blending: this times the writers, not the stitch) to 3 minutes (5,400 frames); the rig is the
+project's ``prerot.fbx`` test rig (tests/motion/rigs.py: Mixamo names, a skinned mesh,
+centimetres, pre- and post-rotations on every bone), Blender-made. Each number is the wall time
+of ``write_on_rig`` (writing plus the read-back placement check), median of 3 runs after one
+warm-up run, in one process, on a machine shared with other jobs. Also BVH and GLB, and each
+file's placement check.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dancegraph.motion.bvh import read_bvh
+from dancegraph.motion.fbx import FbxExporter, fbx_available
+from dancegraph.motion.retarget import retarget, write_on_rig
+from dancegraph.motion.retime import resample
+from dancegraph.motion.rig import load_rig
+from dancegraph.motion.skeleton import Motion
+from dancegraph.paths import shared_dir
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from tests.motion.rigs import make_rigs  # noqa: E402
+
+TARGETS_S = {".fbx": 3.0, ".usd": 1.0}
+RIG = "prerot.fbx"
+FPS, SECONDS = 30.0, 180
+
+
+def three_minute_salsa() -> Motion:
+    """Real salsa takes at 30 fps laid end to end, cut at 3 minutes."""
+    takes = sorted((shared_dir() / "datasets/mocap/cmu-salsa").glob("60_*_scaled.bvh"))
+    clips = [resample(read_bvh(path, fps=60.0), FPS) for path in takes]
+    need = int(SECONDS * FPS)
+    roots = np.concatenate([c.root_positions for c in clips] * 4)[:need]
+    rotations = np.concatenate([c.rotations for c in clips] * 4)[:need]
+    return Motion(clips[0].skeleton, FPS, roots, rotations)
+
+
+def main() -> int:
+    if not (shared_dir() / "datasets").is_dir() or not fbx_available():
+        print("shared datasets or Blender not found: skipped")
+        return 0
+    dance = three_minute_salsa()
+    with tempfile.TemporaryDirectory() as tmp, FbxExporter() as exporter:
+        rigs = make_rigs(Path(tmp) / "rigs")
+        rig = load_rig(rigs / RIG)
+        motion, report = retarget(dance, rig)
+        print(
+            f"{RIG}: {rig.skeleton.n_joints} joints, {rig.mesh.n_vertices} skinned vertices, "
+            f"{rig.height():.3f} m; dance {motion.n_frames} frames at {motion.fps:g} fps"
+        )
+        print("| file | median s (3 runs, warm) | runs s | target s | height ratio | upright |")
+        print("|---|---|---|---|---|---|")
+        missed = []
+        for ext in (".bvh", ".glb", ".usd", ".fbx"):
+            out = Path(tmp) / f"dance{ext}"
+            write_on_rig(motion, rig, rigs / RIG, out, exporter=exporter)  # warm-up
+            runs, summary = [], {}
+            for _ in range(3):
+                t0 = time.perf_counter()
+                summary = write_on_rig(motion, rig, rigs / RIG, out, exporter=exporter)
+                runs.append(time.perf_counter() - t0)
+            median = statistics.median(runs)
+            target = TARGETS_S.get(ext)
+            if target is not None and median > target:
+                missed.append(ext)
+            place = summary["placement"]
+            print(
+                f"| {ext} | {median:.2f} | {', '.join(f'{r:.2f}' for r in runs)} | "
+                f"{'-' if target is None else target} | {place['height_ratio']} | "
+                f"{place['upright']} |"
+            )
+    if missed:
+        print(f"over target: {', '.join(missed)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
