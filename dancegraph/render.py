@@ -40,7 +40,7 @@ from dancegraph.errors import DanceGraphError
 from dancegraph.graph.artifact import KINDS, MotionGraph
 from dancegraph.motion import quat
 from dancegraph.motion.bvh import write_bvh
-from dancegraph.motion.retime import BEAT_ACCENT
+from dancegraph.motion.retime import BEAT_ACCENT, STOPS_ON_BEATS, sample
 from dancegraph.motion.skeleton import Motion
 from dancegraph.spec import Spec
 
@@ -147,7 +147,7 @@ def render_path(
     duration_s: float | None = None,
     placements: np.ndarray | None = None,
     foot_cleanup: bool = True,
-    land_stops: bool = True,
+    land_stops: bool = STOPS_ON_BEATS,
     beat_accent: float = BEAT_ACCENT,
 ) -> tuple[Motion, dict]:
     """The dance of one path: ``nodes[b]`` (node ids) danced on music bar b, whose beats are
@@ -157,7 +157,9 @@ def render_path(
     ``frames`` per bar, ``seams`` (frames where a later bar's node takes over; not where a take
     simply continues into its next bar), ``seam_bars`` (the bar each seam starts), ``cut_beats``
     (each seam's offset from its bar line, beats), ``foot_skate`` (before/after), ``stage``
-    (root ground-plane extent), ``drift`` (how far stitching strayed from the plan, corrected).
+    (root ground-plane extent), ``drift`` (how far stitching strayed from the plan, corrected),
+    ``retime`` (``beat_timing``'s report: the accent asked, had and added, the pulse depth it
+    adds, the re-timing's local speed factor outside the seams).
 
     ``placements``: ``(B, 3)`` (x, z, yaw) of each bar's first frame as the search planned it
     (``Alternative.placements``; default: the origin facing +Z, chained by the stitch). The
@@ -201,10 +203,11 @@ def render_path(
         )
     seam = ~cuts["continuous"]
     seams = cuts["cuts"][seam]
-    dance, seams = beat_timing(
+    dance, seams, retimed = beat_timing(
         dance, bar_beats, int(frames[0, 0]), seams, land_stops=land_stops, accent=beat_accent
     )
     report: dict = {
+        "retime": retimed,
         "seams": [int(s) for s in seams],
         "seam_bars": [int(b) + 1 for b in np.flatnonzero(seam)],
         "cut_beats": [round(float(x), 3) for x in cuts["cut_beats"][seam]],
@@ -256,44 +259,48 @@ def beat_timing(
     start_frame: int,
     frames: np.ndarray,
     *,
-    land_stops: bool = True,
+    land_stops: bool = STOPS_ON_BEATS,
     accent: float = BEAT_ACCENT,
-) -> tuple[Motion, np.ndarray]:
+) -> tuple[Motion, np.ndarray, dict]:
     """The stitched ``dance`` (song frames from ``start_frame`` on, at ``dance.fps``) re-timed on
     the song's beats ``bar_beats (B, 5)`` s, in one resampling through two steps, each a map
-    from song time to the time of the dance before it:
+    from song time to the time of the dance before it (both off by default: the dance keeps the
+    pulse of its takes; docs/rendering.md):
 
     1. stops on the beats (``land_stops``): the dance's stops (``rhythm.motion.motion_stops``)
        within ``STOP_TOLERANCE`` beat of a song beat land on it (``retime.accent_anchors``: no
        beat interval sped up or slowed down beyond ``STOP_MAX_SPEED``; ``retime.beat_map``);
-    2. the beat accent (``accent`` > 0): the landed dance slows into every beat and speeds up
-       between (``retime.accent_map``), by ``accent`` less the accent it already has
-       (``retime.accent_depth`` of its ``stop_curve``; a dance that already slows that much on
-       its beats is left as it is), fading out within ``retime.ACCENT_FADE_BEATS`` of each of
-       ``frames`` (the seams keep their pace); beats and bar lines stay where they are.
+    2. the beat accent (``accent`` > 0, a stylization): the landed dance slows into every beat
+       and speeds up between (``retime.accent_map``), by ``accent`` less the accent it already
+       has (``retime.accent_depth`` of its ``stop_curve``), fading out within
+       ``retime.ACCENT_FADE_BEATS`` of each of ``frames`` (the seams keep their pace); beats and
+       bar lines stay where they are.
 
-    ``accent`` in [0, 0.8]. Returns the re-timed dance (same frame count and rate) and ``frames
-    (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall. Why: the nodes'
-    beats are laid on the song's, but stops made by the hand-overs, and the stops of nodes whose
-    grid was read from motion, sit at any phase of the beat, and a dance of even pace has no
-    moment the eye reads as the beat; the viewer sees the stitched dance. A dance on a skeleton
-    without the canonical joints, or with nothing to move (no stop near a beat, no pace to
-    accent), is returned as it is."""
-    from dancegraph.motion.retime import (
-        accent_anchors,
-        accent_depth,
-        accent_map,
-        beat_map,
-        sample,
-        song_phase,
-    )
+    ``accent`` in [0, 0.8]. Returns the re-timed dance (same frame count and rate), ``frames
+    (K,)`` (song frame numbers of the input, e.g. its seams) where they now fall, and a report:
+    ``stops_on_beats``, ``accent`` (asked), ``accent_had`` (what the dance had, None when not
+    read), ``accent_added`` (the depth applied), ``pulse_depth`` (``{"without", "with"}``: the
+    mean joint speed's fold on the song's beats without and with the accent,
+    ``metrics.naturalness``; None without an accent) and ``speed_factor`` (``[min, max]`` of the
+    re-timing's rate, source time per song time, outside ``SEAM_CLEAR_BEATS`` of the seams). A
+    dance on a skeleton without the canonical joints, or with nothing to move, is returned as it
+    is."""
+    from dancegraph.motion.retime import accent_anchors, beat_map
     from dancegraph.rhythm.motion import motion_rhythm
 
     fps = float(dance.fps)
     frames = np.asarray(frames)
     bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    info: dict[str, Any] = {
+        "stops_on_beats": bool(land_stops),
+        "accent": float(accent),
+        "accent_had": None,
+        "accent_added": 0.0,
+        "pulse_depth": None,
+        "speed_factor": [1.0, 1.0],
+    }
     if not land_stops and accent <= 0.0:
-        return dance, frames
+        return dance, frames, info
     step = max(1, int(fps // STOP_FPS))
     coarse = Motion(
         dance.skeleton, fps / step, dance.root_positions[::step], dance.rotations[::step]
@@ -303,7 +310,7 @@ def beat_timing(
     except DanceGraphError as exc:
         if exc.code != "skeleton_unmapped":
             raise
-        return dance, frames
+        return dance, frames, info
     moved = bar_beats
     if land_stops:
         moved = accent_anchors(bar_beats, stops + start_frame / fps, STOP_TOLERANCE, STOP_MAX_SPEED)
@@ -312,25 +319,93 @@ def beat_timing(
     def to_dance(t: np.ndarray) -> np.ndarray:  # song time -> time in the stitched dance
         return beat_map(bar_beats, moved, t) if landed else t
 
-    depth = 0.0
+    coarse_t = (start_frame + step * np.arange(curve.size)) / fps
     if accent > 0.0 and curve.any():
-        t = (start_frame + step * np.arange(curve.size)) / fps
-        inside = (t >= bar_beats[0, 0]) & (t <= bar_beats[-1, 4])
-        source = to_dance(t)
-        speed = np.interp(source, t, curve) * np.gradient(source, t)  # the landed dance's
-        had = accent_depth(speed[inside], song_phase(bar_beats)(t[inside]))
-        depth = float(np.clip(accent - had, 0.0, accent))
-    if not landed and depth == 0.0:
-        return dance, frames
+        info["accent_had"] = _accent_had(curve, coarse_t, to_dance, bar_beats)
+        info["accent_added"] = float(np.clip(accent - info["accent_had"], 0.0, accent))
+    depth = info["accent_added"]
     song = (start_frame + np.arange(dance.n_frames)) / fps
+    if not landed and depth == 0.0:
+        if accent > 0.0:  # asked, and nothing to add: the dance's own pulse, reported
+            info["pulse_depth"] = _pulse_with_accent(coarse, coarse_t, song, song, song, bar_beats)
+        return dance, frames, info
+    landed_song = to_dance(song)
     if depth > 0.0:  # the frames given (the seams) keep the dance's pace, where they now fall
-        landed_at = np.interp(frames / fps, to_dance(song), song)
-        song = accent_map(bar_beats, song, depth, fade_at=landed_at)
-    source = to_dance(song) * fps - start_frame
+        from dancegraph.motion.retime import accent_map
+
+        landed_at = np.interp(frames / fps, landed_song, song)
+        source_t = to_dance(accent_map(bar_beats, song, depth, fade_at=landed_at))
+    else:
+        source_t = landed_song
+    source = source_t * fps - start_frame
     warped = sample(dance, source)
     warped.fps = fps
     now = np.interp(frames - start_frame, source, np.arange(dance.n_frames)) + start_frame
-    return warped, np.round(now).astype(np.int64)
+    info["speed_factor"] = speed_factor(source_t, song, now / fps, bar_beats)
+    if accent > 0.0:
+        info["pulse_depth"] = _pulse_with_accent(
+            coarse, coarse_t, song, landed_song, source_t, bar_beats
+        )
+    return warped, np.round(now).astype(np.int64), info
+
+
+#: Beats either side of a seam left out of the re-timing's speed factor (a hand-over's own
+#: offsets decay there; the accent fades out within a beat of it).
+SEAM_CLEAR_BEATS = 0.5
+
+
+def speed_factor(
+    source_t: np.ndarray, song_t: np.ndarray, seams_t: np.ndarray, bar_beats: np.ndarray
+) -> list[float]:
+    """``[min, max]`` of a re-timing's local speed factor ``d source_t / d song_t`` (``(N,)`` s
+    each: the time shown at each song time) inside the bars of ``bar_beats (B, 5)`` and farther
+    than ``SEAM_CLEAR_BEATS`` (of the median beat) from every ``seams_t (K,)`` s; ``[1, 1]``
+    where no sample is left. Why: a re-timing should keep the dancers' own pace (a factor near
+    1), and this is its largest departure from it."""
+    rate = np.gradient(np.asarray(source_t, dtype=float), np.asarray(song_t, dtype=float))
+    beat = float(np.median(np.diff(bar_beats, axis=1)))
+    keep = (song_t >= bar_beats[0, 0]) & (song_t <= bar_beats[-1, 4])
+    for s in np.asarray(seams_t, dtype=float).reshape(-1):
+        keep &= np.abs(song_t - s) > SEAM_CLEAR_BEATS * beat
+    if not keep.any():
+        return [1.0, 1.0]
+    return [round(float(rate[keep].min()), 4), round(float(rate[keep].max()), 4)]
+
+
+def _accent_had(curve: np.ndarray, t: np.ndarray, to_dance, bar_beats: np.ndarray) -> float:
+    """``retime.accent_depth`` of the landed dance: its stop curve ``curve (N,)``, read at song
+    times ``t (N,)`` s of the stitched dance, through the landing ``to_dance``."""
+    from dancegraph.motion.retime import accent_depth, song_phase
+
+    inside = (t >= bar_beats[0, 0]) & (t <= bar_beats[-1, 4])
+    source = to_dance(t)
+    speed = np.interp(source, t, curve) * np.gradient(source, t)
+    return accent_depth(speed[inside], song_phase(bar_beats)(t[inside]))
+
+
+def _pulse_with_accent(
+    coarse: Motion,
+    coarse_t: np.ndarray,
+    song: np.ndarray,
+    without: np.ndarray,
+    with_accent: np.ndarray,
+    bar_beats: np.ndarray,
+) -> dict:
+    """Pulse depth (``metrics.naturalness``) of the dance at song times ``song (N,)`` s shown
+    through two re-timings (the stitched dance's times ``without`` and ``with_accent``, ``(N,)``
+    s), from the mean joint speed of ``coarse`` (the stitched dance read at times ``coarse_t``)."""
+    from dancegraph.metrics.naturalness import pulse_depth, pulse_profile
+    from dancegraph.motion.features import joint_speed
+    from dancegraph.motion.fk import forward_kinematics
+
+    speed = joint_speed(forward_kinematics(coarse)[0], coarse.fps, 0.0)
+    fps = 1.0 / float(np.median(np.diff(song)))
+    lead = np.zeros(int(round(song[0] * fps)))
+    out = {}
+    for key, src in (("without", without), ("with", with_accent)):
+        v = np.interp(src, coarse_t, speed) * np.gradient(src, song)
+        out[key] = round(pulse_depth(pulse_profile(np.concatenate([lead, v]), fps, bar_beats)), 4)
+    return out
 
 
 def stage_violation(root_xz: np.ndarray, stage) -> float:
@@ -443,6 +518,7 @@ def render(
                 "foot_skate": report.get("foot_skate"),
                 "stage": report["stage"],
                 "drift": report["drift"],
+                "retime": report["retime"],
                 **({"rig": to_json_types(rig_report)} if rig_report is not None else {}),
                 **{
                     key: to_json_types(v)
@@ -635,7 +711,9 @@ def synthesize(
     from dancegraph.music.analysis import analyze
 
     if analysis is None:
-        analysis = analyze(audio, tempo_range=style_tempo_range(spec, graph))
+        analysis = analyze(
+            audio, tempo_range=style_tempo_range(spec, graph), params=spec.analysis_params()
+        )
     if isinstance(audio, str | Path) or sr is not None:
         analysis = add_music_terms(analysis, graph, audio if sr is None else (audio, sr))
     found = search(graph, analysis, spec)

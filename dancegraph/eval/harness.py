@@ -38,7 +38,7 @@ from dancegraph.errors import DanceGraphError
 from dancegraph.eval import ROWS
 from dancegraph.graph.artifact import MotionGraph
 from dancegraph.metrics import beats as mbeats
-from dancegraph.metrics import diversity, kinetic, physical, smoothness, structure
+from dancegraph.metrics import diversity, kinetic, naturalness, physical, smoothness, structure
 from dancegraph.motion.features import joint_speed, kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import resample
@@ -64,6 +64,9 @@ ROW_TITLES = {
 EVAL_FPS = 60.0
 FID_WINDOW_S = 5.0  # FID_k samples: non-overlapping windows of this length
 CONCAT_RUN_BARS = 8  # bars per clip in the clip-concatenation baseline
+#: Takes drawn as the "dances" of the two-sample test's library-against-library chance row (as
+#: many as a song's default alternatives).
+CLASSIFIER_FILES = 3
 #: Scalar metrics of one dance, in table order, with their column titles.
 SCALARS: dict[str, str] = {
     "cm_accuracy": "CM beat acc.",
@@ -81,9 +84,15 @@ SCALARS: dict[str, str] = {
     "controls_share": "Controls ok",
     "signature_chi2": "Signature χ²",
     "stage_inside_share": "On stage",
+    "pulse_depth": "Pulse depth",
+    "speed_factor_min": "Speed factor min",
+    "speed_factor_max": "Speed factor max",
+    "grid_passed": "Grid check ok",
+    "grid_passed_other": "Grid check ok (other song)",
 }
 AGGREGATES: dict[str, str] = {
     "fid_k": "FID_k",
+    "classifier": "Classifier bal. acc.",
     "div_alternatives": "Div. alts",
     "div_paths": "Bars differ (alts)",
     "div_songs": "Div. songs",
@@ -111,6 +120,9 @@ class Library:
     kinetic_windows: np.ndarray | None  # (N, 72) raw features of the takes' windows
     norm: tuple[np.ndarray, np.ndarray] | None
     contact_skate: dict | None = None  # the takes' own foot sliding at contacts (``seam_metrics``)
+    pulse: dict | None = None  # the steady takes' pulse on their own grids (``naturalness``)
+    descriptors: list[np.ndarray] = field(default_factory=list)  # per take: its 2-s windows
+    classifier_chance: float | None = None  # the two-sample test, library against library
     _takes: dict = field(default_factory=dict, repr=False)
 
     def take(self, clip: str) -> Motion:
@@ -127,14 +139,20 @@ def load_library(graph: MotionGraph, dataset=None) -> Library:
     if dataset is None:
         return Library(graph, None, None, None, None)
     lib = Library(graph, dataset, None, None, None)
-    positions, windows, skates = [], [], []
+    positions, windows, skates, pulses = [], [], [], []
     for clip in dataset.clips:
         motion = lib.take(clip.id)
         pos, world = forward_kinematics(motion)
         positions.append(pos)
         smpl = kinetic.smpl_positions(motion.skeleton, pos, world)
         windows.append(kinetic.window_features(smpl, EVAL_FPS, FID_WINDOW_S))
+        lib.descriptors.append(naturalness.window_descriptors(smpl, EVAL_FPS))
         skates.append(physical.foot_skating(pos, world, motion.skeleton, EVAL_FPS))
+        if "no_steady_beat" not in clip.flags:
+            bars = np.array([b.beat_times for b in dataset.bars if b.clip_id == clip.id])
+            pulses.append((joint_speed(pos, EVAL_FPS, 0.0), EVAL_FPS, bars.reshape(-1, 5)))
+    lib.pulse = naturalness.library_pulse(pulses)
+    lib.classifier_chance = naturalness.library_chance(lib.descriptors, CLASSIFIER_FILES)
     lib.seams = smoothness.Reference.from_takes(positions, EVAL_FPS)
     lib.contact_skate = _pooled_skate(skates)
     lib.kinetic_windows = np.concatenate(windows)
@@ -187,6 +205,8 @@ class Dance:
     features: np.ndarray  # (72,) kinetic features of the whole dance
     nodes: np.ndarray | None
     plot: dict
+    #: (W', 37) the two-sample test's 2-s windows (``naturalness.window_descriptors``)
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 37)))
 
 
 def score_dance(
@@ -201,13 +221,17 @@ def score_dance(
     nodes: np.ndarray | None = None,
     tags: list[dict] | None = None,
     seams=None,
+    bar_beats: np.ndarray | None = None,
+    other_bar_beats: np.ndarray | None = None,
 ) -> Dance:
     """Every metric of one dance ``motion`` (60 fps, frame 0 = t 0 of the song).
 
     ``span`` (s): where the dance moves (beats outside it are not counted); ``grid``: the music
     the dance is scored against, ``other``: another song's (a chance row; none: not measured).
     ``bars (T, 2)``, ``nodes (T,)`` and ``tags``: the path on the music bars, when there is
-    one (structure, controls); ``seams``: frames where bars meet.
+    one (structure, controls); ``seams``: frames where bars meet. ``bar_beats (T, 5)``: the
+    song's bars the dance was laid on (the pulse depth and the recovered-grid check,
+    ``naturalness_metrics``); ``other_bar_beats``: another song's, the check's chance row.
     """
     if abs(motion.fps - EVAL_FPS) > 1e-6:
         raise ValueError(f"score_dance needs {EVAL_FPS} fps, got {motion.fps}")
@@ -241,6 +265,8 @@ def score_dance(
         ctl = structure.control_satisfaction(lib.graph, spec, bars, nodes, root_xz, fps)
         m["controls_share"] = ctl["share"]
         m["controls"] = ctl
+    if bar_beats is not None:
+        m.update(naturalness_metrics(motion.skeleton, pos, world, bar_beats, other_bar_beats))
     lo, hi = int(round(a * fps)), max(int(round(b * fps)), int(round(a * fps)) + 3)
     smpl = smpl_all[lo:hi]
     plot = {
@@ -254,6 +280,7 @@ def score_dance(
     return Dance(
         metrics=m,
         windows=kinetic.window_features(smpl, fps, FID_WINDOW_S),
+        descriptors=naturalness.window_descriptors(smpl, fps),
         features=kinetic.kinetic_features(smpl, fps),
         nodes=None if nodes is None else np.asarray(nodes),
         plot=plot,
@@ -278,6 +305,36 @@ def sync_metrics(
         out[key] = own[key]
         out[f"{key}_half"] = None if key == "phase_r" else half[key]
         out[f"{key}_other"] = far.get(key)
+    return out
+
+
+def naturalness_metrics(
+    skeleton, pos: np.ndarray, world: np.ndarray, bar_beats: np.ndarray, other=None
+) -> dict:
+    """The pulse depth of a dance (world ``pos``/``world`` at ``EVAL_FPS``, frame 0 = t 0) on
+    the song's beat phase (``bar_beats (B, 5)`` s) and the recovered-grid check
+    (``naturalness.recovered_grid``, ``grid_check``): ``pulse_depth``, ``pulse_profile``,
+    ``recovered_grid`` (the check's numbers), ``grid_passed``, and with ``other`` (another
+    song's bars, scaled to this song's tempo: ``naturalness.scaled_grid``) its chance row
+    ``grid_passed_other`` and ``recovered_grid_other``."""
+    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    profile = naturalness.pulse_profile(joint_speed(pos, EVAL_FPS, 0.0), EVAL_FPS, bb)
+    out: dict = {
+        "pulse_depth": naturalness.pulse_depth(profile),
+        "pulse_profile": [round(float(x), 4) for x in profile],
+    }
+    span = (float(bb[0, 0]), float(bb[-1, 4]))
+    tempo = 60.0 / float(np.median(np.diff(bb, axis=1)))
+    try:
+        grid = naturalness.recovered_grid(skeleton, pos, world, EVAL_FPS, span, tempo)
+    except ValueError:  # a dance under 2 s has no grid to recover
+        return out
+    out["recovered_grid"] = naturalness.grid_check(grid, bb)
+    out["grid_passed"] = float(out["recovered_grid"]["passed"])
+    if other is not None:
+        chance = naturalness.grid_check(grid, naturalness.scaled_grid(other, bb))
+        out["recovered_grid_other"] = chance
+        out["grid_passed_other"] = float(chance["passed"])
     return out
 
 
@@ -479,12 +536,12 @@ def _real_dances(
 
 
 def _row_dances(
-    lib: Library, song: Song, spec: Spec, row: str, song_no: int, other: mbeats.SyncGrid | None
+    lib: Library, song: Song, spec: Spec, row: str, song_no: int, other: Song | None
 ) -> list[Dance]:
     analysis = song.analysis
     n_bars = len(analysis.bars)
     if row == "real":
-        return _real_dances(lib, song, spec, song_no, other)
+        return _real_dances(lib, song, spec, song_no, other.grid if other else None)
     if row in ("random_walk", "clip_concat"):
         make = random_walk if row == "random_walk" else clip_concatenation
         paths: list[dict[str, Any]] = []
@@ -503,12 +560,18 @@ def _row_dances(
             spec,
             span=span,
             grid=song.grid,
-            other=other,
+            other=other.grid if other else None,
             bars=np.asarray(analysis.bars),
             nodes=p["nodes"],
             tags=list(analysis.tags),
             seams=report["seams"],
+            bar_beats=analysis.bar_beats,
+            other_bar_beats=other.analysis.bar_beats if other else None,
         )
+        d.metrics["retime"] = report["retime"]
+        d.metrics["speed_factor_min"], d.metrics["speed_factor_max"] = report["retime"][
+            "speed_factor"
+        ]
         d.plot["per_bar"] = p.get("per_bar")
         out.append(d)
     return out
@@ -560,8 +623,34 @@ def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[s
         )
         firsts = [_norm(lib, song[row][0].features) for song in per_song if song.get(row)]
         entry["div_songs"] = diversity.feature_diversity(np.stack(firsts)) if firsts else None
+        entry["classifier"] = _mean(classifier_scores(lib, per_song, [row])[row])
         table[row] = entry
     return table
+
+
+def classifier_scores(
+    lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[str]
+) -> dict[str, list[float | None]]:
+    """Per row, per song: the two-sample test (``naturalness.two_sample_accuracy``) of the
+    song's dances of that row against the library's takes (None without the takes, with
+    fewer than two dances, or without scikit-learn)."""
+    return {
+        row: [
+            naturalness.two_sample_accuracy(
+                [d.descriptors for d in song.get(row, [])], lib.descriptors
+            )
+            if lib.descriptors
+            else None
+            for song in per_song
+        ]
+        for row in rows
+    }
+
+
+def library_summary(lib: Library) -> dict:
+    """The library's own numbers the naturalness rows stand beside: its steady takes' pulse on
+    their own grids (``naturalness.library_pulse``) and the two-sample test's chance row."""
+    return to_json_types({"pulse": lib.pulse, "classifier_chance": lib.classifier_chance})
 
 
 def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
@@ -613,7 +702,8 @@ def load_song(
     from dancegraph.music.decode import load_audio
 
     if analysis is None:
-        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph))
+        params = spec.analysis_params() if spec is not None else None
+        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph), params=params)
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)
@@ -655,7 +745,7 @@ def evaluate(
     for s, song in enumerate(songs):
         dances: dict[str, list[Dance]] = {}
         # the other-song chance row: the same dances against the next song's music
-        other = songs[(s + 1) % len(songs)].grid if len(songs) > 1 else None
+        other = songs[(s + 1) % len(songs)] if len(songs) > 1 else None
         for row in rows:
             if progress:
                 progress(song.name, row)
@@ -677,11 +767,15 @@ def evaluate(
             }
         )
     table = aggregate(lib, per_song, rows)
+    for row, scores in classifier_scores(lib, per_song, rows).items():
+        for song_out, score in zip(songs_out, scores, strict=True):
+            song_out["rows"][row]["classifier"] = score
     metrics = {
         "format": 1,
         "graph": {"name": lib.graph.name, "version": lib.graph.version},
         "spec": spec.model_dump(mode="json"),
         "fps": EVAL_FPS,
+        "library": library_summary(lib),
         "rows": to_json_types(table),
         "sync": to_json_types(sync_table(per_song, rows)),
         "songs": songs_out,
@@ -759,7 +853,12 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
             nodes=nodes,
             tags=tags,
             seams=seams,
+            bar_beats=bar_beats if len(bar_beats) else None,
         )
+        if alt.get("retime"):
+            d.metrics["speed_factor_min"], d.metrics["speed_factor_max"] = alt["retime"][
+                "speed_factor"
+            ]
         d.plot["per_bar"] = [dict(b.get("cost", {}), node=b["node"]) for b in alt["bars"]]
         dances.append(d)
     if not dances:
@@ -793,6 +892,7 @@ def evaluate_result(result_dir: str | Path, lib: Library, audio: str | Path | No
         "graph": {"name": lib.graph.name, "version": lib.graph.version},
         "spec": spec.model_dump(mode="json"),
         "fps": EVAL_FPS,
+        "library": library_summary(lib),
         "music_beats": source,
         "rows": to_json_types(lib_rows),
         "sync": to_json_types(sync_table(per_song, ["result"])),

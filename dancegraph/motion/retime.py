@@ -33,10 +33,15 @@ BEAT0 = 2
 #: (docs/rendering.md, "Accent anchors"), and not mid-beat, where it would make a new stop.
 TURN_BEATS = 0.2
 #: How much a rendered dance slows into every beat by default (``accent_phase``'s depth that the
-#: renderer reaches, counting what the dance already has: ``accent_depth``): 0.4 slows a dance
-#: of even pace to 0.6 of it on the beat and speeds it to 1.4 half-way (docs/rendering.md,
-#: "Beat accent", for what it does to sync, speed and FID on real songs).
-BEAT_ACCENT = 0.4
+#: renderer reaches, counting what the dance already has: ``accent_depth``): none. The accent is
+#: a stylization a user asks for (0.4 slows a dance of even pace to 0.6 of it on the beat and
+#: speeds it to 1.4 half-way); by default the dance keeps the pulse its takes have
+#: (docs/rendering.md, "Beat accent", and docs/evaluation.md, "Naturalness").
+BEAT_ACCENT = 0.0
+#: Whether the renderer lands the stitched dance's stops on the song's beats by default: no. The
+#: step moves beat intervals by up to 1.5x and deepened the dance's pulse to 1.2-2.9x the
+#: anchored dance's on the CC and generated songs (docs/evaluation.md, "Naturalness").
+STOPS_ON_BEATS = False
 #: Beats either side of a moment that keeps the dance's own pace (a seam: a hand-over already
 #: carries the stitch's offsets, and the accent's speed-up would add to them) over which the
 #: accent fades out; one beat keeps ``accent_phase`` monotone up to depth 0.8.

@@ -18,7 +18,7 @@ from dancegraph.motion.features import kinematic_beats
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.retime import Warp, accent_anchors, sample
 from dancegraph.motion.skeleton import Motion
-from dancegraph.render import beat_timing, render_path
+from dancegraph.render import STOP_MAX_SPEED, beat_timing, render_path
 from dancegraph.rhythm.motion import motion_stops
 
 ON_EVERY_BEAT = "01010101"  # slots 0, 2, 4, 6: a pause on each beat
@@ -133,7 +133,9 @@ def test_stops_on_beats_moves_stops_and_seams():
     motion, bars, _ = _off_grid_take(4, 120.0, 0.0)
     song_bars = bars - 0.1
     before = motion_stops(motion)
-    moved, seam = beat_timing(motion, song_bars, 0, np.array([120]), accent=0.0)
+    moved, seam, info = beat_timing(
+        motion, song_bars, 0, np.array([120]), land_stops=True, accent=0.0
+    )
     assert moved.n_frames == motion.n_frames
     beats = np.unique(song_bars)
     inner = (beats > beats[0] + 0.3) & (beats < beats[-1] - 0.3)
@@ -141,6 +143,9 @@ def test_stops_on_beats_moves_stops_and_seams():
         near = np.abs(beats[inner][:, None] + off - stops[None, :]).min(axis=1)
         assert inner.sum() >= 8 and np.all(near <= 1.5 / motion.fps)
     assert abs(int(seam[0]) - (120 - round(0.1 * motion.fps))) <= 1
+    assert info["accent_added"] == 0.0 and info["pulse_depth"] is None
+    lo, hi = info["speed_factor"]  # the landing moved beats: its rate left 1, within its bound
+    assert lo < 1.0 < hi and 1.0 / STOP_MAX_SPEED - 1e-3 <= lo and hi <= STOP_MAX_SPEED + 1e-3
 
 
 def test_stops_on_beats_leaves_a_dance_without_stops_as_it_is():
@@ -153,8 +158,9 @@ def test_stops_on_beats_leaves_a_dance_without_stops_as_it_is():
         np.repeat(motion.root_positions[:1], motion.n_frames, axis=0),
         np.repeat(motion.rotations[:1], motion.n_frames, axis=0),
     )
-    out, seams = beat_timing(still, bars, 0, np.array([30, 90]))
+    out, seams, info = beat_timing(still, bars, 0, np.array([30, 90]), land_stops=True, accent=0.4)
     assert out is still and seams.tolist() == [30, 90]
+    assert info["speed_factor"] == [1.0, 1.0]
 
 
 def test_build_anchors_motion_read_grids_only(tmp_path):
@@ -251,13 +257,15 @@ def test_beat_accent_puts_stops_on_the_beats_of_an_even_dance():
         stops = motion_stops(m)
         return stops[(stops > beats[0] - 0.1) & (stops < beats[-1] + 0.1)]
 
-    out, _ = beat_timing(glide, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False, accent=0.4)
+    out, _, _ = beat_timing(
+        glide, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False, accent=0.4
+    )
     assert out.n_frames == n
     stops = stops_within_bars(out)
     assert np.abs(stops[:, None] - beats[None, 1:-1]).min(axis=0).max() <= 1.5 / motion.fps
     assert np.abs(stops[:, None] - beats[None, :]).min(axis=1).max() <= 1.5 / motion.fps
 
-    out, seam = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.4)
+    out, seam, _ = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.4)
     at = int(seam[0])
     assert abs(at - 300) <= 1  # the glide's seam frame, where its motion now falls
     speed = np.linalg.norm(np.diff(out.root_positions, axis=0), axis=1) * motion.fps
@@ -267,30 +275,38 @@ def test_beat_accent_puts_stops_on_the_beats_of_an_even_dance():
     stops = stops_within_bars(out)
     assert np.abs(stops[:, None] - far[None, :]).min(axis=0).max() <= 1.5 / motion.fps
 
-    same, frames = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.0)
+    same, frames, _ = beat_timing(glide, bars, 0, np.array([300]), land_stops=False, accent=0.0)
     assert same is glide and frames.tolist() == [300]
 
 
 def test_beat_accent_leaves_a_dance_that_already_slows_on_its_beats():
     """A take that pauses on every beat of its grid already slows on the beat more than the
-    accent asks: ``beat_timing`` returns it as it is."""
+    accent asks: ``beat_timing`` returns it as it is, and says what it had."""
     motion, bars, _ = _off_grid_take(4, 120.0, 0.0)
-    out, _ = beat_timing(motion, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False)
+    out, _, info = beat_timing(
+        motion, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False, accent=0.4
+    )
     assert out is motion
+    assert info["accent_had"] >= 0.4 and info["accent_added"] == 0.0
 
 
 @pytest.mark.parametrize("bpm, start_s", [(95.0, 0.3), (120.0, 0.1), (150.0, 0.0), (171.0, 0.2)])
 def test_beat_accent_gathers_a_real_takes_stops_on_any_grid(salsa_dir, bpm, start_s):
     """Real salsa (20 s of take 60_07) on a steady grid unrelated to its own beat: its Shiratori
-    stops fall at any phase of the grid's beats (R < 0.3); with the default beat accent alone
-    (stops step off) they gather on them (R >= 0.6)."""
+    stops fall at any phase of the grid's beats (R < 0.3); with the beat accent 0.4 alone
+    (stops step off) they gather on them (R >= 0.6), and the pulse it adds is reported: the
+    mean joint speed's fold on the grid deeper with it than without."""
     from dancegraph.motion.bvh import read_bvh
 
     take = read_bvh(salsa_dir / "60_07_scaled.bvh", fps=60).slice(600, 1800)
     bars = _grid_bars(start_s, bpm, take.n_frames / take.fps)
     beats = np.unique(bars)
     before = phase_concentration(beats, motion_stops(take))[0]
-    out, _ = beat_timing(take, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False)
+    out, _, info = beat_timing(
+        take, bars, 0, np.zeros(0, dtype=np.int64), land_stops=False, accent=0.4
+    )
     after = phase_concentration(beats, motion_stops(out))[0]
     assert before < 0.3
     assert after >= 0.6
+    pulse = info["pulse_depth"]
+    assert pulse["with"] >= 2.0 * pulse["without"] and pulse["with"] >= 0.3

@@ -180,8 +180,10 @@ def test_bad_paths_are_clear_errors(demo_graph, analysis, rendered, tmp_path: Pa
 
 def test_beat_accent_reaches_the_renderer(demo_graph, analysis, tmp_path, monkeypatch):
     """``output.beat_accent`` and ``output.stops_on_beats`` reach the re-timing of every
-    alternative (default 0.4 and on; the step itself: tests/graph/test_anchors.py), and the
-    spec refuses an accent that would stop the dance (0.8 at most)."""
+    alternative (default 0 and off: the dance keeps its takes' pulse; the steps themselves:
+    tests/graph/test_anchors.py), the timeline reports the accent asked, what the dance had,
+    what was added and the pulse depth without and with it, and the spec refuses an accent
+    that would stop the dance (0.8 at most)."""
     import dancegraph.render as render_module
 
     seen = []
@@ -194,18 +196,24 @@ def test_beat_accent_reaches_the_renderer(demo_graph, analysis, tmp_path, monkey
     monkeypatch.setattr(render_module, "beat_timing", spy)
     spec = _spec(alternatives=2, output={"formats": ["bvh"], "fps": FPS, "beat_accent": 0.25})
     render(demo_graph, analysis, search(demo_graph, analysis, spec), spec, tmp_path)
-    assert seen == [(True, 0.25), (True, 0.25)]
-    assert Spec().output.beat_accent == 0.4
+    assert seen == [(False, 0.25), (False, 0.25)]
+    for alt in json.loads((tmp_path / "timeline.json").read_text())["alternatives"]:
+        retime = alt["retime"]
+        assert retime["accent"] == 0.25 and retime["accent_had"] is not None
+        assert retime["accent_added"] == pytest.approx(max(0.0, 0.25 - retime["accent_had"]))
+        assert set(retime["pulse_depth"]) == {"without", "with"}
+    assert Spec().output.beat_accent == 0.0 and Spec().output.stops_on_beats is False
     with pytest.raises(SpecError) as err:
         parse_spec({"dataset": "demo", "output": {"beat_accent": 0.9}})
     assert "beat_accent" in str(err.value.to_dict())
 
 
 def test_stops_on_beats_switch_reaches_the_files(demo_graph, analysis, rendered, tmp_path):
-    """``output.stops_on_beats`` (default on) re-times the written dance; off, the files hold
-    the dance without that step: same frames and seams' bars, other poses."""
+    """``output.stops_on_beats`` (default off) re-times the written dance when asked: same
+    frames and seams' bars as the default's files, other poses; the default's timeline reports
+    no re-timing (no accent, speed factor 1)."""
     out, _, _, _ = rendered
-    spec = _spec(output={"formats": ["bvh"], "fps": FPS, "stops_on_beats": False})
+    spec = _spec(output={"formats": ["bvh"], "fps": FPS, "stops_on_beats": True})
     found = search(demo_graph, analysis, spec)
     render(demo_graph, analysis, found, spec, tmp_path)
     on, off = read_bvh(out / "alternatives/0.bvh"), read_bvh(tmp_path / "alternatives/0.bvh")
@@ -214,3 +222,6 @@ def test_stops_on_beats_switch_reaches_the_files(demo_graph, analysis, rendered,
     timelines = [json.loads((d / "timeline.json").read_text()) for d in (out, tmp_path)]
     bars = [t["alternatives"][0]["seam_bars"] for t in timelines]
     assert bars[0] == bars[1]
+    default = timelines[0]["alternatives"][0]["retime"]
+    assert default["accent_added"] == 0.0 and default["pulse_depth"] is None
+    assert default["speed_factor"] == [1.0, 1.0]
