@@ -1068,6 +1068,8 @@ def build_graph(
         "acknowledgement": dataset.meta.get("acknowledgement"),
         # the style's danced tempo range: a song's bars count the octave that fits it
         "style_tempo_bpm": dataset.meta.get("style_tempo_bpm"),
+        # the library's style label, for choosing a library by style (graph.style_choice)
+        "style": dataset.meta.get("style"),
     }
     return artifact.write_graph(store, dataset.name, arrays, manifest, node_ids=ids)
 
