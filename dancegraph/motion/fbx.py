@@ -34,6 +34,7 @@ from dancegraph.paths import REPO_ROOT
 WORKER_SCRIPT = Path(__file__).with_name("blender_worker.py")
 DEFAULT_START_TIMEOUT_S = 180.0  # a cold Blender import takes 2-5 s; a loaded machine much more
 DEFAULT_CONVERT_TIMEOUT_S = 600.0  # a 15-minute song at 60 fps is about 54k frames
+DEFAULT_MAX_JOBS = 100  # files per Blender child before a fresh one (Blender's memory grows)
 
 
 class FbxError(DanceGraphError):
@@ -61,7 +62,9 @@ class FbxExporter:
     """One warm Blender child process converting BVH files to FBX, one request at a time.
 
     Thread-safe (requests are serialised). The child starts on the first :meth:`convert` and is
-    restarted after it dies or times out. Use as a context manager or call :meth:`close`.
+    restarted after it dies or times out, and after ``max_jobs`` files (default
+    ``$DANCEGRAPH_FBX_MAX_JOBS`` or 100), so a long-lived worker never carries a Blender that has
+    grown with every scene it loaded. Use as a context manager or call :meth:`close`.
     """
 
     def __init__(
@@ -70,8 +73,13 @@ class FbxExporter:
         *,
         start_timeout_s: float = DEFAULT_START_TIMEOUT_S,
         convert_timeout_s: float | None = None,
+        max_jobs: int | None = None,
     ):
         self.python = Path(python) if python is not None else blender_python()
+        self.max_jobs = max(
+            1, max_jobs or int(os.environ.get("DANCEGRAPH_FBX_MAX_JOBS", 0) or DEFAULT_MAX_JOBS)
+        )
+        self._jobs = 0  # files written by the current child
         self.start_timeout_s = start_timeout_s
         self.convert_timeout_s = convert_timeout_s or float(
             os.environ.get("DANCEGRAPH_FBX_TIMEOUT", DEFAULT_CONVERT_TIMEOUT_S)
@@ -134,6 +142,7 @@ class FbxExporter:
             ) from exc
         self._proc = proc
         self.starts += 1
+        self._jobs = 0
         self._finalizer.detach()
         self._finalizer = weakref.finalize(self, _kill, proc)
         self._lines = queue.Queue()
@@ -205,7 +214,11 @@ class FbxExporter:
                 continue  # not a protocol line; the worker only writes JSON there
 
     def _request(self, payload: dict, timeout_s: float) -> dict:
+        counted = payload.get("op") in ("convert", "animate_rig")
+        if counted and self._jobs >= self.max_jobs:
+            self._stop_locked()  # a fresh child for the next max_jobs files
         self._ensure_started()
+        self._jobs += counted
         self._next_id += 1
         req_id = self._next_id
         assert self._proc is not None and self._proc.stdin is not None  # started above

@@ -200,6 +200,19 @@ def test_exporter_stays_warm_and_recovers(salsa_dir: Path, tmp_path: Path):
     assert (tmp_path / "3.fbx").stat().st_size > 10_000
 
 
+def test_exporter_is_renewed_after_max_jobs(salsa_dir: Path, tmp_path: Path):
+    """A long-lived worker's Blender is replaced after ``max_jobs`` files (its memory grows)."""
+    bvh = tmp_path / "a.bvh"
+    write_bvh(read_bvh(salsa_dir / "61_03_scaled.bvh", fps=60.0).slice(0, 20), bvh)
+    with FbxExporter(max_jobs=2) as ex:
+        pids = []
+        for k in range(5):
+            ex.convert(bvh, tmp_path / f"{k}.fbx")
+            pids.append(ex.pid)
+        assert ex.starts == 3 and pids[0] == pids[1] != pids[2] == pids[3] != pids[4]
+    assert all((tmp_path / f"{k}.fbx").stat().st_size > 5_000 for k in range(5))
+
+
 def test_timeout_stops_a_stuck_worker(salsa_dir: Path, tmp_path: Path):
     motion = read_bvh(salsa_dir / "60_03_scaled.bvh", fps=60.0).slice(0, 600)
     bvh = tmp_path / "a.bvh"
