@@ -15,7 +15,7 @@ import json
 import math
 import re
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import (
     BaseModel,
@@ -30,9 +30,6 @@ from pydantic import (
 
 from dancegraph.errors import SpecError, field_errors
 from dancegraph.motion.retime import BEAT_ACCENT, STOPS_ON_BEATS
-
-if TYPE_CHECKING:
-    from dancegraph.music.params import AnalysisParams
 
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
@@ -73,9 +70,6 @@ class StructureRules(_Strict):
 BarRange = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
 SecondRange = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]
 #: a tempo range [lo, hi] BPM; 20-400 spans every danced tempo and the tracker's octaves of it
-#: A motion library's name (a dataset).
-LibraryName = Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")]
-
 BpmRange = Annotated[
     list[Annotated[float, Field(ge=20, le=400)]], Field(min_length=2, max_length=2)
 ]
@@ -217,18 +211,7 @@ class Output(_Strict):
 class Spec(_Strict):
     """A user's constraint spec. Only ``dataset`` is needed, and it has a default."""
 
-    dataset: LibraryName | Annotated[list[LibraryName], Field(min_length=1, max_length=50)] = Field(
-        "cmu-salsa",
-        description="the motion library, or a list of libraries to choose from by how the "
-        "song fits each (graph.style_choice); the timeline names the one chosen and why",
-    )
-    style: LibraryName | None = Field(
-        None,
-        description="a style name (the library whose manifest declares that style dances), or "
-        "'auto': choose among the tenant's and the public libraries (or the dataset list) by "
-        "the song's tempo against each style's tempo range and the music-to-motion style "
-        "distance (graph.style_choice)",
-    )
+    dataset: str = Field("cmu-salsa", pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")
     alternatives: int = Field(3, ge=1, le=10)
     seed: int = Field(0, ge=0)
     weights: Weights = Field(default_factory=Weights)
@@ -254,12 +237,6 @@ class Spec(_Strict):
         "tempo (analysis grid_octave x2 or x1/2, with a warning). Default: the range the "
         "dataset declares (its manifest's style_tempo_bpm), else the tracked tempo",
     )
-    analysis: dict[str, Any] | None = Field(
-        None,
-        description="overrides of the music analysis's parameters: nested keys of "
-        'dancegraph.music.params.AnalysisParams, e.g. {"group": {"net_confident": 0.75}} '
-        "(docs/music.md); unknown keys and wrong types are refused. Default: the tuned values",
-    )
     couple: bool = Field(
         False,
         description="dance as a couple, the lead and the follow together, from the dataset's "
@@ -271,41 +248,12 @@ class Spec(_Strict):
         None, description="POSTed when the job ends; must name a public address"
     )
 
-    @field_validator("dataset")
-    @classmethod
-    def _libraries_unique(cls, value: str | list[str]) -> str | list[str]:
-        if isinstance(value, list) and len(set(value)) != len(value):
-            raise ValueError("dataset: each library once")
-        return value
-
-    def libraries(self) -> list[str]:
-        """The library names ``dataset`` gives, as a list (one name: a list of one)."""
-        return [self.dataset] if isinstance(self.dataset, str) else list(self.dataset)
-
     @field_validator("tempo_range")
     @classmethod
     def _tempo_range_ordered(cls, value: list[float] | None) -> list[float] | None:
         if value is not None and value[0] >= value[1]:
             raise ValueError("tempo_range must be [lo, hi] BPM with lo < hi")
         return value
-
-    @field_validator("analysis")
-    @classmethod
-    def _analysis_params_known(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
-        if value is not None:
-            from dancegraph.music.params import AnalysisParams
-
-            try:
-                AnalysisParams.from_dict(value)
-            except SpecError as exc:
-                raise ValueError(exc.message) from exc
-        return value
-
-    def analysis_params(self) -> AnalysisParams | None:
-        """The music analysis's parameters this spec asks for (None: the defaults)."""
-        from dancegraph.music.params import AnalysisParams
-
-        return None if self.analysis is None else AnalysisParams.from_dict(self.analysis)
 
     @model_validator(mode="after")
     def _waypoints_on_stage(self):
