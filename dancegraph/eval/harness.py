@@ -324,7 +324,7 @@ def naturalness_metrics(
         "pulse_profile": [round(float(x), 4) for x in profile],
     }
     span = (float(bb[0, 0]), float(bb[-1, 4]))
-    tempo = 60.0 / float(np.median(np.diff(bb, axis=1)))
+    tempo = 60.0 / naturalness.beat_period(bb)
     try:
         grid = naturalness.recovered_grid(skeleton, pos, world, EVAL_FPS, span, tempo)
     except ValueError:  # a dance under 2 s has no grid to recover

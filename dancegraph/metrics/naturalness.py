@@ -103,6 +103,15 @@ def library_pulse(takes: list[tuple[np.ndarray, float, np.ndarray]]) -> dict:
 # recovered grid
 
 
+def beat_period(bar_beats: np.ndarray) -> float:
+    """The regular beat (s) of bars ``bar_beats (B, 5)`` s: the mean of the beat intervals within
+    10 % of their median (a beat tracker's intervals snap to its frames, so their median is
+    biased; a stretched bar is no regular beat)."""
+    d = np.diff(np.asarray(bar_beats, dtype=float).reshape(-1, 5), axis=1).ravel()
+    med = float(np.median(d))
+    return float(d[np.abs(d / med - 1.0) <= 0.1].mean())
+
+
 def recovered_grid(
     skeleton,
     positions: np.ndarray,
@@ -132,13 +141,13 @@ def recovered_grid(
 
 def grid_check(grid: BeatGrid, bar_beats: np.ndarray) -> dict:
     """``grid`` (a ``recovered_grid``) against the song's bars ``bar_beats (B, 5)`` s:
-    ``tempo_bpm`` (the grid's), ``song_tempo_bpm`` (the bars' median beat), ``tempo_diff_pct``,
+    ``tempo_bpm`` (the grid's), ``song_tempo_bpm`` (``beat_period``), ``tempo_diff_pct``,
     ``median_offset_ms`` and ``downbeat_agreement`` (``tempo.partner_agreement``, over the span
     both cover), and ``passed`` (all three within ``GRID_TEMPO_PCT``, ``GRID_OFFSET_MS``,
     ``GRID_DOWNBEATS``)."""
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     beats = np.unique(bb.ravel())
-    song_tempo = 60.0 / float(np.median(np.diff(bb, axis=1)))
+    song_tempo = 60.0 / beat_period(bb)
     downs = np.unique(np.concatenate([bb[:, 0], bb[-1:, 4]]))
     found = partner_agreement(
         grid.beats, grid.beats[grid.downbeats], grid.tempo_bpm, beats, downs, song_tempo
@@ -159,14 +168,12 @@ def grid_check(grid: BeatGrid, bar_beats: np.ndarray) -> dict:
 
 
 def scaled_grid(other_bar_beats: np.ndarray, bar_beats: np.ndarray) -> np.ndarray:
-    """Another song's bars ``other_bar_beats (B', 5)`` s scaled in time (about t 0) to the median
+    """Another song's bars ``other_bar_beats (B', 5)`` s scaled in time (about t 0) to the regular
     beat of ``bar_beats (B, 5)``: a grid of the same tempo that the dance was not laid on, the
     recovered-grid check's chance row."""
     ob = np.asarray(other_bar_beats, dtype=float).reshape(-1, 5)
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
-    own = float(np.median(np.diff(bb, axis=1)))
-    other = float(np.median(np.diff(ob, axis=1)))
-    return ob * (own / other)
+    return ob * (beat_period(bb) / beat_period(ob))
 
 
 # --------------------------------------------------------------------------------------------
