@@ -132,6 +132,26 @@ def _count(value, what: str, path: Path) -> int:
     return value
 
 
+def _view(
+    doc: dict, buffers: _Buffers, acc: dict, count: int, elem: int, path: Path
+) -> tuple[bytes, int, int]:
+    """``(buffer, first byte, byte stride)`` of an accessor's ``count`` elements of ``elem``
+    bytes, once its stride is in ``[elem, 252]`` and its last element ends inside its buffer
+    view, and the view inside the buffer's real bytes."""
+    view = doc["bufferViews"][_count(acc["bufferView"], "a buffer view index", path)]
+    data = buffers[_count(view["buffer"], "a buffer index", path)]
+    view_start = _count(view.get("byteOffset", 0), "a byteOffset", path)
+    view_end = view_start + _count(view["byteLength"], "a byteLength", path)
+    start = view_start + _count(acc.get("byteOffset", 0), "a byteOffset", path)
+    stride = view.get("byteStride", elem)
+    if not isinstance(stride, int) or isinstance(stride, bool) or not elem <= stride <= 252:
+        raise _unreadable(path, f"a byteStride is not in [{elem}, 252]")
+    need = start + stride * (count - 1) + elem if count else start
+    if view_end > len(data) or need > view_end:
+        raise _unreadable(path, "an accessor runs past its buffer view or buffer")
+    return data, start, stride
+
+
 def _accessor(doc: dict, buffers: _Buffers, k: int, path: Path) -> np.ndarray:
     """Accessor ``k`` as a ``(count, width)`` array. Its byte stride, offsets and count are
     checked against its buffer view and the buffer's real size, and its size against what the
@@ -145,6 +165,7 @@ def _accessor(doc: dict, buffers: _Buffers, k: int, path: Path) -> np.ndarray:
     width = _WIDTH[acc["type"]]
     count = _count(acc["count"], f"accessor {k}'s count", path)
     elem = dtype.itemsize * width
+    view = _view(doc, buffers, acc, count, elem, path) if "bufferView" in acc else None
     if count * elem > buffers.decode_left:
         raise RigError(
             f"{path.name}: accessor {k} would decode {count * elem} bytes, more than the "
@@ -153,19 +174,9 @@ def _accessor(doc: dict, buffers: _Buffers, k: int, path: Path) -> np.ndarray:
             field=path.name,
         )
     buffers.decode_left -= count * elem
-    if "bufferView" not in acc:
+    if view is None:
         return np.zeros((count, width), dtype=dtype)
-    view = doc["bufferViews"][_count(acc["bufferView"], "a buffer view index", path)]
-    data = buffers[_count(view["buffer"], "a buffer index", path)]
-    view_start = _count(view.get("byteOffset", 0), "a byteOffset", path)
-    view_length = _count(view["byteLength"], "a byteLength", path)
-    start = view_start + _count(acc.get("byteOffset", 0), "a byteOffset", path)
-    stride = view.get("byteStride", elem)
-    if not isinstance(stride, int) or isinstance(stride, bool) or not elem <= stride <= 252:
-        raise _unreadable(path, f"accessor {k}'s byteStride is not in [{elem}, 252]")
-    need = start + stride * (count - 1) + elem if count else start
-    if view_start + view_length > len(data) or need > view_start + view_length:
-        raise _unreadable(path, f"accessor {k} runs past its buffer view or buffer")
+    data, start, stride = view
     rows = np.lib.stride_tricks.as_strided(
         np.frombuffer(data, dtype=np.uint8, count=len(data) - start, offset=start),
         shape=(count, elem),

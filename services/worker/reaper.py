@@ -16,7 +16,8 @@ One sweep (``reap_once``):
    entry of the store's scratch folder (partial uploads, render and build folders, temporary
    files), result versions no manifest names, unfinished multipart uploads (S3), and uploaded
    songs (``blobs/``) that no job row references (an API killed between storing and writing
-   the row).
+   the row), and stored rig files (``rigs/``) whose rig has no row (an upload whose row could
+   not be written).
 
 Run it as ``dancegraph reaper`` (a loop), as the Celery beat task ``dancegraph.reap``, or inside
 ``dancegraph serve --embedded``.
@@ -169,7 +170,10 @@ def reap_once(
     grace = 2 * settings.job_timeout_s
     report.tmp_removed = store.sweep_scratch(grace)
     report.orphans_removed = (
-        store.sweep_orphans("jobs", grace) + store.sweep_uploads(grace) + sweep_blobs(store, grace)
+        store.sweep_orphans("jobs", grace)
+        + store.sweep_uploads(grace)
+        + sweep_blobs(store, grace)
+        + sweep_rigs(store, grace)
     )
     if report:
         log.info("reaped", extra=report.to_dict())
@@ -196,6 +200,29 @@ def sweep_blobs(store: ObjectStore, older_than_s: float) -> int:
     for sha in set(old) - used:
         store.delete(old[sha])
     return len(set(old) - used)
+
+
+def sweep_rigs(store: ObjectStore, older_than_s: float) -> int:
+    """Remove stored rig files (``rigs/<tenant>/<rig id>/``) whose rig has no row, stored more
+    than ``older_than_s`` ago; returns how many rigs' files went."""
+    from services.models import Rig
+
+    limit = time.time() - older_than_s
+    old: dict[str, str] = {}
+    for e in store.entries("rigs"):
+        parts = e.key.split("/")
+        if len(parts) == 4 and e.mtime < limit:
+            old[parts[2]] = "/".join(parts[:3])
+    if not old:
+        return 0
+    with session_scope() as session:
+        ids = list(old)
+        known: set[str] = set()
+        for i in range(0, len(ids), 500):
+            known.update(session.scalars(select(Rig.id).where(Rig.id.in_(ids[i : i + 500]))))
+    for rig_id in set(old) - known:
+        store.delete_prefix(old[rig_id])
+    return len(set(old) - known)
 
 
 def run_forever(
