@@ -162,9 +162,6 @@ def _add_dataset(sub) -> None:
     imp.add_argument(
         "--json", action="store_true", help="print the report as JSON (default: a table)"
     )
-    imp.add_argument(
-        "--strict", action="store_true", help="publish nothing unless every take imports"
-    )
 
     def _import(args) -> int:
         from tqdm import tqdm
@@ -179,9 +176,7 @@ def _add_dataset(sub) -> None:
                 bar.set_postfix_str(name, refresh=False)
                 bar.update(done - bar.n)
 
-            report = import_dataset(
-                args.dir, args.name, _store(args), manifest, progress, strict=args.strict
-            )
+            report = import_dataset(args.dir, args.name, _store(args), manifest, progress)
         if args.json:
             print_json(report.to_dict())
         else:
@@ -211,10 +206,9 @@ def _add_dataset(sub) -> None:
     )
 
     def _show(args) -> int:
-        from dancegraph.motion.dataset import check_line, grid_report, load_dataset
+        from dancegraph.motion.dataset import grid_report, load_dataset
 
-        ds = load_dataset(_store(args), args.name)
-        report = grid_report(ds)
+        report = grid_report(load_dataset(_store(args), args.name))
         if args.json:
             print_json(report)
             return 0
@@ -226,9 +220,6 @@ def _add_dataset(sub) -> None:
                 f"  {len(c['beats'])} beats  {len(c['bars'])} bars  {c['beat_source']}"
                 f"  {','.join(c['flags'])}"
             )
-        for clip in ds.clips:
-            if clip.grid_check:
-                print(check_line(clip))
         return 0
 
     show.set_defaults(func=_show)
@@ -264,6 +255,12 @@ def _add_dataset(sub) -> None:
     )
     bld.add_argument("--store", default=None, help=STORE_HELP)
     bld.add_argument("--json", action="store_true", help="print the report as JSON")
+    bld.add_argument(
+        "--couple",
+        action="store_true",
+        help="build the couple graph of the takes the manifest declares danced together "
+        "('partners'; stored as the graph NAME.couple) instead of the solo graph",
+    )
 
     def _build(args) -> int:
         from tqdm import tqdm
@@ -278,6 +275,11 @@ def _add_dataset(sub) -> None:
             blend_ratio=args.blend_ratio,
             shuffle_ratio=args.shuffle_ratio,
         )
+        if args.couple:
+            from dancegraph.couple.graph import build_couple_graph
+
+            print_json(build_couple_graph(_store(args), args.name, params))
+            return 0
         with tqdm(total=100, unit="%", file=sys.stderr, disable=None) as bar:
 
             def progress(stage: str, fraction: float) -> None:
@@ -317,19 +319,11 @@ def _add_motion(sub) -> None:
     demo = m_sub.add_parser("demo", help="write the generated demo dance library (BVH + manifest)")
     demo.add_argument("out_dir", help="folder to write into")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--takes", type=int, default=None, help="number of takes (default 6)")
-    demo.add_argument(
-        "--with-music",
-        action="store_true",
-        help="each take with the music it is danced to (.ogg, audio_offset_s, truth.json)",
-    )
 
     def run_demo(args) -> None:
         from dancegraph.motion.demo import write_demo_library
 
-        out = write_demo_library(
-            args.out_dir, seed=args.seed, n_takes=args.takes, with_music=args.with_music
-        )
+        out = write_demo_library(args.out_dir, seed=args.seed)
         print_json({"dir": str(out), "files": sorted(f.name for f in out.iterdir())})
 
     demo.set_defaults(func=run_demo)
@@ -438,6 +432,14 @@ def _add_synthesize(sub) -> None:
         "--rig", default=None, help="also write each alternative on this rig (.fbx, .glb, .bvh)"
     )
     p.add_argument("--map", default=None, help="with --rig: joint mapping file (role -> joint)")
+    p.add_argument(
+        "--couple",
+        action="store_true",
+        help="dance as a couple (spec couple: true): alternatives/<k>/lead.bvh and follow.bvh",
+    )
+    p.add_argument(
+        "--follow-rig", default=None, help="with --couple: the follow's rig (--rig is the lead's)"
+    )
     p.add_argument("--store", default=None, help=STORE_HELP)
 
     def run(args) -> None:
@@ -456,6 +458,9 @@ def _add_synthesize(sub) -> None:
             mapping = read_mapping(args.map) if args.map else None
             rig = load_rig(args.rig, mapping=mapping)  # a bad rig fails before any work
             on_rig = RigOutput(rig, args.rig, [*spec.output.formats, "glb"])
+        if args.couple or spec.couple:
+            _synthesize_couple(args, spec, on_rig)
+            return
         graph = open_graph(open_cli_store(args.store), args.dataset)
         _warm_kernels()
         done = synthesize(args.audio, graph, spec, args.out, on_rig=on_rig)
@@ -480,6 +485,39 @@ def _add_synthesize(sub) -> None:
         )
 
     p.set_defaults(func=run)
+
+
+def _synthesize_couple(args, spec: Spec, lead_rig) -> None:
+    """``synthesize --couple``: the couple graph's search and the render for two; prints the
+    files and each alternative's cost."""
+    from dancegraph.couple.graph import open_couple_graph
+    from dancegraph.couple.render import synthesize_couple
+    from dancegraph.spec import parse_spec
+
+    spec = parse_spec({**spec.model_dump(mode="json"), "couple": True})
+    rigs = {"lead": lead_rig} if lead_rig is not None else {}
+    if args.follow_rig:
+        from dancegraph.motion.retarget import RigOutput
+        from dancegraph.motion.rig import load_rig
+
+        rigs["follow"] = RigOutput(
+            load_rig(args.follow_rig), args.follow_rig, [*spec.output.formats, "glb"]
+        )
+    graph = open_couple_graph(open_cli_store(args.store), args.dataset)
+    _warm_kernels()
+    done = synthesize_couple(args.audio, graph, spec, args.out, on_rig=rigs)
+    print_json(
+        {
+            "out": args.out,
+            "files": done["files"],
+            "analysis": done["analysis"],
+            "graph": {"name": graph.name, "version": graph.version},
+            "alternatives": [
+                {"index": a["index"], "cost": a["cost"], "frames": a["frames"]}
+                for a in done["timeline"]["alternatives"]
+            ],
+        }
+    )
 
 
 def _add_eval(sub) -> None:
@@ -514,8 +552,11 @@ def _add_eval(sub) -> None:
         if args.result:
             from dancegraph.preview import read_timeline
 
-            prov = read_timeline(args.result).get("provenance", {})
+            timeline = read_timeline(args.result)
+            prov = timeline.get("provenance", {})
             name = args.dataset or prov.get("dataset", {}).get("name")
+            if timeline.get("couple"):
+                return _eval_couple(args.result, store, name)
             graph = open_graph(store, name, prov.get("graph", {}).get("version") or None)
             lib = load_library(graph, load_dataset(store, name))
             metrics = evaluate_result(args.result, lib, args.audio_file)
@@ -544,6 +585,21 @@ def _add_eval(sub) -> None:
         return 0
 
     p.set_defaults(func=run)
+
+
+def _eval_couple(result: str, store, name: str) -> int:
+    """``eval --result DIR`` of a couple result: the couple checks and each partner's seams
+    (``eval.couple``), printed and written to DIR/couple_metrics.json."""
+    from dancegraph.couple.graph import open_couple_graph
+    from dancegraph.eval.couple import couple_reference, evaluate_couple_result
+    from dancegraph.eval.harness import load_library
+    from dancegraph.motion.dataset import load_dataset
+
+    dataset = load_dataset(store, name)
+    lib = load_library(open_couple_graph(store, name), dataset)
+    metrics = evaluate_couple_result(result, lib, couple_reference(dataset))
+    print_json({"out": result, **metrics})
+    return 0
 
 
 def _add_train(sub) -> None:

@@ -38,7 +38,7 @@ from dancegraph.motion import quat
 from dancegraph.motion.bvh import write_bvh
 from dancegraph.motion.retime import node_warp, sample_runs, song_phase
 from dancegraph.motion.skeleton import Motion
-from dancegraph.motion.stitch import CUT_BEATS, stitch, turn_on_ground
+from dancegraph.motion.stitch import CUT_BEATS, _decay, _quintic, stitch, turn_on_ground
 from dancegraph.render import (
     TIMELINE,
     TIMELINE_FORMAT,
@@ -80,7 +80,8 @@ def _source_placement(
     lead: list, follow: list, bar_beats: np.ndarray, frames: np.ndarray, fps: float, cuts
 ) -> tuple[np.ndarray, np.ndarray]:
     """The relative placement each output frame's node shows ``(F, 3)`` (frames
-    ``[frames[0, 0], frames[-1, 1])``), and at each cut the earlier node's ``(B-1, 3)``."""
+    ``[frames[0, 0], frames[-1, 1])``), and the earlier node's at the frame before each cut and
+    at the cut ``(B-1, 2, 3)``."""
     phase = song_phase(bar_beats)
     bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]]).astype(np.int64)
     runs = []
@@ -92,29 +93,30 @@ def _source_placement(
     rel = relative_placement(lr, lq[:, 0], fr, fq[:, 0])
     ends = np.cumsum([len(r) for r in runs])
     own = np.concatenate([np.arange(e - len(r), e - 1) for r, e in zip(runs, ends, strict=True)])
-    return rel[own], rel[ends[:-1] - 1]
+    at_cut = np.stack([rel[ends[:-1] - 2], rel[ends[:-1] - 1]], axis=1)
+    return rel[own], at_cut
 
 
 def _blend_placement(
     rel: np.ndarray, at_cut: np.ndarray, starts: np.ndarray, seams: np.ndarray, fps: float
 ) -> np.ndarray:
-    """``rel (F, 3)`` with each seam's jump (``at_cut`` − ``rel`` at the cut, frames ``starts``
-    counted from frame 0 of ``rel``) decayed over the frames to the next seam (at least
-    ``PLACEMENT_BLEND_S``, at most a bar's worth)."""
+    """``rel (F, 3)`` with each seam's offset inertialized: the earlier node's placement and
+    its velocity at the cut (``at_cut (S, 2, 3)``: the frame before and at it) against the
+    later node's (``rel`` at frames ``starts (S,)``, counted from frame 0 of ``rel``), decayed
+    along Bollo's quintic (``stitch``'s) to zero by the next cut (at least
+    ``PLACEMENT_BLEND_S``)."""
     out = rel.copy()
-    order = np.argsort(starts)
-    starts, at_cut = starts[order], at_cut[order]
-    seams = seams[order]
     for s in np.flatnonzero(seams):
         c = int(starts[s])
+        if c + 1 >= len(rel):
+            continue
         nxt = int(starts[s + 1]) if s + 1 < len(starts) else len(rel)
-        n = max(int(round(PLACEMENT_BLEND_S * fps)), nxt - c)
-        n = min(n, len(rel) - c)
-        jump = at_cut[s] - rel[c]
-        jump[2] = wrap(jump[2])
-        x = np.arange(n) / max(n, 1)
-        fade = 1.0 - x**3 * (10.0 - 15.0 * x + 6.0 * x**2)
-        out[c : c + n] += fade[:, None] * jump[None, :]
+        n = min(max(int(round(PLACEMENT_BLEND_S * fps)), nxt - c), len(rel) - c)
+        x0 = at_cut[s, 1] - rel[c]
+        v0 = (at_cut[s, 1] - at_cut[s, 0]) - (rel[c + 1] - rel[c])
+        x0[2], v0[2] = wrap(x0[2]), wrap(v0[2])
+        t = np.arange(n, dtype=float)[:, None]
+        out[c : c + n] += _decay(_quintic(x0, v0, np.full(3, float(n))), t)
     out[:, 2] = wrap(out[:, 2])
     return out
 
@@ -250,7 +252,7 @@ def _jump(rel: np.ndarray, at_cut: np.ndarray, starts: np.ndarray, seam: np.ndar
     """The largest jump of relative placement at the seams (before blending): metres, radians."""
     if not seam.any():
         return {"m": 0.0, "rad": 0.0}
-    d = at_cut[seam] - rel[starts]
+    d = at_cut[seam, 1] - rel[starts]
     return {
         "m": round(float(np.linalg.norm(d[:, :2], axis=1).max()), 4),
         "rad": round(float(np.abs(wrap(d[:, 2])).max()), 4),
@@ -297,10 +299,13 @@ def render_couple(
     *,
     exporter=None,
     extra_provenance: dict | None = None,
+    on_rig: dict | None = None,
 ) -> dict:
     """Write every alternative of ``result`` (the search on the couple ``graph``) into
     ``out_dir`` as two dancers (module docstring); returns ``{"files", "timeline"}`` as
-    ``render.render``. Raises ``DanceGraphError(code="not_a_couple_graph")`` for a solo graph,
+    ``render.render``. ``on_rig``: per partner (``"lead"``, ``"follow"``) a hook as
+    ``render.render``'s (``motion.retarget.RigOutput``), called with ``"<k>/<partner>"``: that
+    dancer is also written on its rig as ``alternatives/<k>/<partner>.rig.<fmt>``. Raises ``DanceGraphError(code="not_a_couple_graph")`` for a solo graph,
     ``render_empty`` for a result without alternatives."""
     if not is_couple(graph):
         raise DanceGraphError(
@@ -335,6 +340,11 @@ def render_couple(
             _centre(lead, follow).root_positions[:, [0, 2]], spec.stage
         )
         entry_files = _write_partners(k, lead, follow, out, formats, exporter)
+        for key, hook in (on_rig or {}).items():
+            rig_files, report.setdefault("rig", {})[key] = hook(
+                f"{k}/{key}", {"lead": lead, "follow": follow}[key], out
+            )
+            entry_files.update({f"{key}_{name}": rel for name, rel in rig_files.items()})
         files.extend(entry_files.values())
         entries.append(_couple_entry(graph, k, alt, report, entry_files, lead.n_frames))
     timeline = _couple_timeline(graph, analysis, spec, found, entries, extra_provenance)
@@ -392,11 +402,18 @@ def _couple_timeline(graph, analysis, spec, found, entries, extra) -> dict:
 
 
 def synthesize_couple(
-    audio, graph: MotionGraph, spec: Spec, out_dir: str | Path, *, analysis=None, exporter=None
+    audio,
+    graph: MotionGraph,
+    spec: Spec,
+    out_dir: str | Path,
+    *,
+    analysis=None,
+    exporter=None,
+    on_rig: dict | None = None,
 ) -> dict:
     """Song → couple dance files: analysis (unless given) → the search on the couple ``graph``
     (``graph.search.search``, the solo search on the couple's arrays) → ``render_couple``.
-    ``audio``: a path (or samples, then pass ``analysis``). Returns ``render_couple``'s dict plus
+    ``audio``: a path (or samples, then pass ``analysis``); ``on_rig``: see ``render_couple``. Returns ``render_couple``'s dict plus
     ``analysis`` (the summary) and ``search``."""
     from dancegraph.embed.learned import add_music_terms
     from dancegraph.graph.search import search
@@ -410,6 +427,13 @@ def synthesize_couple(
     found = search(graph, analysis, spec)
     source = {"audio": _audio_provenance(Path(audio))} if isinstance(audio, str | Path) else None
     rendered = render_couple(
-        graph, analysis, found, spec, out_dir, exporter=exporter, extra_provenance=source
+        graph,
+        analysis,
+        found,
+        spec,
+        out_dir,
+        exporter=exporter,
+        extra_provenance=source,
+        on_rig=on_rig,
     )
     return {**rendered, "analysis": analysis.summary(), "search": found.to_dict()}

@@ -765,7 +765,8 @@ class RigOutput:
 
     ``rig``: the loaded :class:`~dancegraph.motion.rig.Rig`; ``rig_path``: its file (FBX output
     poses that file in Blender); ``formats``: of ``bvh``, ``fbx``, ``glb``. Calling it with
-    ``(k, dance, out_dir)`` retargets ``dance`` and writes ``alternatives/<k>.rig.<fmt>``; it
+    ``(k, dance, out_dir)`` retargets ``dance`` and writes ``alternatives/<k>.rig.<fmt>`` (``k``
+    an alternative's index, or ``"<index>/<partner>"`` for one dancer of a couple); it
     returns ``(files, report)``: ``{"rig.<fmt>": relative path}`` and the retarget report (with
     each file's ``placement`` check under ``placement.<fmt>``). ``usd`` is written as ``.usd``.
     """
@@ -786,7 +787,7 @@ class RigOutput:
         self.params = params
         self._plan: tuple[int, RetargetPlan] | None = None
 
-    def __call__(self, k: int, dance: Motion, out_dir: str | Path) -> tuple[dict, dict]:
+    def __call__(self, k: int | str, dance: Motion, out_dir: str | Path) -> tuple[dict, dict]:
         key = id(dance.skeleton)
         if self._plan is None or self._plan[0] != key:
             self._plan = (key, plan_retarget(dance.skeleton, self.rig))
