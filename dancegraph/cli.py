@@ -162,6 +162,9 @@ def _add_dataset(sub) -> None:
     imp.add_argument(
         "--json", action="store_true", help="print the report as JSON (default: a table)"
     )
+    imp.add_argument(
+        "--strict", action="store_true", help="publish nothing unless every take imports"
+    )
 
     def _import(args) -> int:
         from tqdm import tqdm
@@ -176,7 +179,9 @@ def _add_dataset(sub) -> None:
                 bar.set_postfix_str(name, refresh=False)
                 bar.update(done - bar.n)
 
-            report = import_dataset(args.dir, args.name, _store(args), manifest, progress)
+            report = import_dataset(
+                args.dir, args.name, _store(args), manifest, progress, strict=args.strict
+            )
         if args.json:
             print_json(report.to_dict())
         else:
@@ -206,9 +211,10 @@ def _add_dataset(sub) -> None:
     )
 
     def _show(args) -> int:
-        from dancegraph.motion.dataset import grid_report, load_dataset
+        from dancegraph.motion.dataset import check_line, grid_report, load_dataset
 
-        report = grid_report(load_dataset(_store(args), args.name))
+        ds = load_dataset(_store(args), args.name)
+        report = grid_report(ds)
         if args.json:
             print_json(report)
             return 0
@@ -220,6 +226,9 @@ def _add_dataset(sub) -> None:
                 f"  {len(c['beats'])} beats  {len(c['bars'])} bars  {c['beat_source']}"
                 f"  {','.join(c['flags'])}"
             )
+        for clip in ds.clips:
+            if clip.grid_check:
+                print(check_line(clip))
         return 0
 
     show.set_defaults(func=_show)
@@ -319,11 +328,19 @@ def _add_motion(sub) -> None:
     demo = m_sub.add_parser("demo", help="write the generated demo dance library (BVH + manifest)")
     demo.add_argument("out_dir", help="folder to write into")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--takes", type=int, default=None, help="number of takes (default 6)")
+    demo.add_argument(
+        "--with-music",
+        action="store_true",
+        help="each take with the music it is danced to (.ogg, audio_offset_s, truth.json)",
+    )
 
     def run_demo(args) -> None:
         from dancegraph.motion.demo import write_demo_library
 
-        out = write_demo_library(args.out_dir, seed=args.seed)
+        out = write_demo_library(
+            args.out_dir, seed=args.seed, n_takes=args.takes, with_music=args.with_music
+        )
         print_json({"dir": str(out), "files": sorted(f.name for f in out.iterdir())})
 
     demo.set_defaults(func=run_demo)
