@@ -1,8 +1,8 @@
 """Dataset import: a folder of motion files (+ an optional manifest) → a normalised dataset of bars.
 
-``import_dataset`` reads every take of a folder (BVH, or animated GLB/glTF), puts takes on other
-skeletons onto the library's skeleton with the retargeter, estimates or reads each take's beat
-and bar grid (from the music the take was danced to where the manifest names it, else from the
+``import_dataset`` reads every take of a folder (BVH, animated GLB/glTF or FBX), puts takes on
+other skeletons onto the library's skeleton with the retargeter, estimates or reads each take's
+beat and bar grid (from the music the take was danced to where the manifest names it, else from the
 motion), cuts 4-beat bars, labels each bar's rhythm signature from its kinematic beats, and
 stores the result in the object store:
 
@@ -21,8 +21,8 @@ the other takes are published (``import_dataset(..., strict=True)`` publishes no
 every take passed, and raises ``dataset_takes_failed`` listing each take's code). Either way no
 reader sees a half-written dataset: clip data goes to a fresh folder that ``dataset.json`` names,
 written last. Failure codes per take: the reader's (``bvh_syntax``, ``bvh_truncated``, ...,
-``gltf_invalid``, ``take_no_animation``), ``take_format_unsupported`` (FBX animation is not
-read yet), ``take_under_one_bar``, ``fps_mixed`` (a frame rate other than the library's
+``gltf_invalid``, ``fbx_invalid``, ``take_no_animation``), ``take_format_unsupported`` (not a
+BVH, GLB/glTF or FBX file), ``take_under_one_bar``, ``fps_mixed`` (a frame rate other than the library's
 without a declared ``fps``), ``skeleton_unmapped`` (no humanoid roles by name or structure and
 no ``roles`` map), ``manifest_file_missing`` (a manifest entry naming an absent take or audio
 file), ``audio_undecodable`` (and the other ``audio_*`` codes of the decoder),
@@ -356,7 +356,7 @@ class ClipInfo:
     ``sections``: the stretches of steady tempo of a grid read from the motion
     (``tempo.Section.to_dict``: start_s, end_s, tempo_bpm, confidence, downbeat_clarity),
     empty for annotated and fixed grids. ``header_fps`` is the file's own rate, ``fps`` the
-    one used. ``source_format``: bvh | glb; ``source_joints``: the take's own skeleton's
+    one used. ``source_format``: bvh | glb | fbx; ``source_joints``: the take's own skeleton's
     joints; ``retarget``: empty for a take on the library's skeleton, else the retargeter's
     checks (``from_joints``, ``foot_sliding_m_s``, ``direction_error_deg``, ``cpu_seconds``).
     ``audio_offset_s``: the audio's time at the take's first frame (music takes);
@@ -1425,11 +1425,13 @@ def _read_take(
     if suffix == ".bvh":
         motion = read_bvh(path, scale=float(cm.scale or m.scale))
         roles = _take_roles(motion.skeleton, _take_mapping(motion.skeleton.names, cm, m), path.name)
-    elif suffix in (".glb", ".gltf"):  # glTF is metres: no scale
+    elif suffix in (".glb", ".gltf", ".fbx"):  # ufbx and glTF read metres: no scale
+        from dancegraph.motion.fbx_anim import read_fbx_motion
         from dancegraph.motion.gltf_anim import read_gltf_motion
 
+        read = read_fbx_motion if suffix == ".fbx" else read_gltf_motion
         try:
-            motion, rig = read_gltf_motion(path, fps=declared, mapping=cm.roles or m.roles)
+            motion, rig = read(path, fps=declared, mapping=cm.roles or m.roles)
         except RigError as exc:
             if exc.code in ("rig_missing_roles", "rig_disconnected", "rig_map_invalid"):
                 raise _unmapped(exc.message, path.name) from None
@@ -1437,7 +1439,7 @@ def _read_take(
         roles = rig.roles
     else:
         raise MotionFileError(
-            "FBX takes are not read yet (their animation): export the take as BVH or GLB",
+            f"a take is a BVH, GLB/glTF or FBX file, not {suffix or 'a file without suffix'}",
             path=path.name,
             code="take_format_unsupported",
         )

@@ -163,15 +163,22 @@ def read_gltf_motion(
             code="gltf_invalid",
         ) from None
     mats = np.stack([world[i] for i in node_of], axis=1)  # (F, J, 4, 4)
-    rot = mats[..., :3, :3] / np.linalg.norm(mats[..., :3, :3], axis=-2, keepdims=True)
-    r = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(len(t), sk.n_joints, 4)
+    return motion_from_world(rig, mats, rate, path.name, "gltf_invalid"), rig
+
+
+def motion_from_world(rig, world: np.ndarray, fps: float, name: str, code: str) -> Motion:
+    """The BVH-convention motion on ``rig.skeleton`` of its joints' world matrices
+    ``(F, J, 4, 4)`` (rig order, metres): each joint's world rotation from its bind rotation
+    (``rig.rest_rotations``) as local rotations, the root joint's world position.
+    ``MotionFileError`` ``code`` for non-finite values."""
+    sk = rig.skeleton
+    rot = world[..., :3, :3] / np.linalg.norm(world[..., :3, :3], axis=-2, keepdims=True)
+    r = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(len(world), sk.n_joints, 4)
     g = quat.multiply(r, quat.conjugate(quat.normalize(rig.rest_rotations))[None])
     local = g.copy()
     nonroot = sk.parents >= 0
     local[:, nonroot] = quat.multiply(quat.conjugate(g[:, sk.parents[nonroot]]), g[:, nonroot])
-    motion = Motion(sk, rate, mats[:, 0, :3, 3], quat.normalize(local))
+    motion = Motion(sk, fps, world[:, 0, :3, 3], quat.normalize(local))
     if not (np.isfinite(motion.rotations).all() and np.isfinite(motion.root_positions).all()):
-        raise MotionFileError(
-            "the animation holds NaN or infinite values", path=path.name, code="gltf_invalid"
-        )
-    return motion, rig
+        raise MotionFileError("the animation holds NaN or infinite values", path=name, code=code)
+    return motion

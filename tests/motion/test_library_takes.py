@@ -12,6 +12,8 @@ from dancegraph.errors import DanceGraphError
 from dancegraph.motion.bvh import read_bvh, write_bvh
 from dancegraph.motion.dataset import import_dataset, load_dataset
 from dancegraph.motion.demo import write_demo_library
+from dancegraph.motion.fbx import bvh_to_fbx, fbx_available
+from dancegraph.motion.fbx_anim import read_fbx_motion
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.gltf import write_glb
 from dancegraph.motion.gltf_anim import read_gltf_motion
@@ -19,6 +21,7 @@ from dancegraph.motion.rig import load_rig
 from dancegraph.motion.skeleton import Motion, Skeleton
 from dancegraph.store import FileStore
 
+needs_blender = pytest.mark.skipif(not fbx_available(), reason="Blender not installed")
 GROOVE = {"tempo_bpm": 100.0, "first_downbeat_s": 0.0, "style": "groove"}
 
 
@@ -83,7 +86,7 @@ def test_every_bad_take_fails_with_its_code_and_the_good_ones_publish(demo_dir, 
         "b_truncated.bvh": "bvh_truncated",
         "c_junk.glb": "gltf_invalid",
         "d_cut.glb": "gltf_invalid",
-        "e_take.fbx": "take_format_unsupported",
+        "e_take.fbx": "fbx_invalid",
         "f_short.bvh": "take_under_one_bar",
         "g_30fps.bvh": "fps_mixed",
         "h_snake.bvh": "skeleton_unmapped",
@@ -132,6 +135,24 @@ def test_a_glb_take_reads_as_its_bvh(demo_dir, tmp_path):
     assert np.median(d) < 0.02 and d.max() < 0.08
     # the reader itself is exact: the GLB's joints where the BVH's are
     motion, _ = read_gltf_motion(src / "g.glb")
+    assert np.abs(forward_kinematics(motion)[0] - forward_kinematics(good)[0]).max() < 1e-4
+
+
+@needs_blender
+def test_an_fbx_take_reads_as_its_bvh(demo_dir, tmp_path):
+    """A take converted to FBX by Blender imports with the BVH's motion and grid."""
+    src = tmp_path / "src"
+    src.mkdir()
+    bvh_to_fbx(demo_dir / "groove_100.bvh", src / "f.fbx")
+    (src / "b.bvh").symlink_to(demo_dir / "groove_100.bvh")
+    store = FileStore(tmp_path / "store")
+    report = import_dataset(src, "fbx", store, {"clips": {"f": GROOVE, "b": GROOVE}})
+    assert report.failed == []
+    rows = {c.id: c for c in report.clips}
+    assert rows["f"].source_format == "fbx" and rows["f"].n_bars == rows["b"].n_bars == 8
+    motion, _ = read_fbx_motion(src / "f.fbx")
+    good = _take(demo_dir)
+    assert motion.n_frames == good.n_frames and motion.fps == good.fps
     assert np.abs(forward_kinematics(motion)[0] - forward_kinematics(good)[0]).max() < 1e-4
 
 
