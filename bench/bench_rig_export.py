@@ -1,8 +1,8 @@
 """Rig output benchmark (issue 38): a 3-minute dance written on a skinned Mixamo-style rig.
 
 Targets: FBX <= 3 s with a warm exporter (one Blender child kept between files), USD <= 1 s.
-The dance is real salsa: the 60_NN takes at their true 60 fps resampled to 30 fps and laid end to
-end (no seam blending: this times the writers, not the stitch) to 3 minutes (5,400 frames); the rig is the
+The dance is bench_fbx's real salsa: the 60_NN takes read at 60 fps, every 2nd frame (30 fps),
+laid end to end to 3 minutes (5,400 frames; this times the writers, not a stitch); the rig is the
 project's ``prerot.fbx`` test rig (tests/motion/rigs.py: Mixamo names, a skinned mesh,
 centimetres, pre- and post-rotations on every bone), Blender-made. Each number is the wall time
 of ``write_on_rig`` (writing plus the read-back placement check), median of 3 runs after one
@@ -18,39 +18,24 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fbx import FbxExporter, fbx_available
 from dancegraph.motion.retarget import retarget, write_on_rig
-from dancegraph.motion.retime import resample
 from dancegraph.motion.rig import load_rig
-from dancegraph.motion.skeleton import Motion
 from dancegraph.paths import shared_dir
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from bench.bench_fbx import three_minute_motion  # noqa: E402
 from tests.motion.rigs import make_rigs  # noqa: E402
 
 TARGETS_S = {".fbx": 3.0, ".usd": 1.0}
 RIG = "prerot.fbx"
-FPS, SECONDS = 30.0, 180
-
-
-def three_minute_salsa() -> Motion:
-    """Real salsa takes at 30 fps laid end to end, cut at 3 minutes."""
-    takes = sorted((shared_dir() / "datasets/mocap/cmu-salsa").glob("60_*_scaled.bvh"))
-    clips = [resample(read_bvh(path, fps=60.0), FPS) for path in takes]
-    need = int(SECONDS * FPS)
-    roots = np.concatenate([c.root_positions for c in clips] * 4)[:need]
-    rotations = np.concatenate([c.rotations for c in clips] * 4)[:need]
-    return Motion(clips[0].skeleton, FPS, roots, rotations)
 
 
 def main() -> int:
     if not (shared_dir() / "datasets").is_dir() or not fbx_available():
         print("shared datasets or Blender not found: skipped")
         return 0
-    dance = three_minute_salsa()
+    dance = three_minute_motion()
     with tempfile.TemporaryDirectory() as tmp, FbxExporter() as exporter:
         rigs = make_rigs(Path(tmp) / "rigs")
         rig = load_rig(rigs / RIG)

@@ -195,9 +195,8 @@ def render(
         return list_result_files(store, job_id)
     from dancegraph.render import render as render_motion
 
-    bvh_spec = spec.model_copy(
-        update={"output": spec.output.model_copy(update={"formats": ["bvh"]})}
-    )
+    here = ["bvh", *(["usd"] if "usd" in spec.output.formats else [])]  # FBX: the fbx queue's
+    bvh_spec = spec.model_copy(update={"output": spec.output.model_copy(update={"formats": here})})
     graph = load_graph(store, spec.dataset, found.graph_version or None)
     tmp = store.temp_dir(f"job-{job_id}")
     try:

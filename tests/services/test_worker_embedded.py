@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.services.test_worker_harness import (  # noqa: F401 (fixtures)
@@ -39,9 +40,11 @@ def embedded(tmp_path_factory, demo_store):  # noqa: F811
 
 def test_job_through_api_in_embedded_mode(embedded, songs, tmp_path):  # noqa: F811
     from dancegraph.motion.bvh import read_bvh
+    from dancegraph.motion.fk import forward_kinematics
+    from dancegraph.motion.usd import joint_world_positions
 
     wav = write_test_song(songs, seed=3, seconds=12.0, name="embedded")
-    spec = {"dataset": DATASET, "alternatives": 2, "output": {"formats": ["bvh"]}}
+    spec = {"dataset": DATASET, "alternatives": 2, "output": {"formats": ["bvh", "usd"]}}
     job_id = embedded.submit(wav, spec)["id"]
     job = embedded.wait_final([job_id], timeout_s=300)[job_id]
     assert job["status"] == "succeeded", job
@@ -53,6 +56,12 @@ def test_job_through_api_in_embedded_mode(embedded, songs, tmp_path):  # noqa: F
         path.write_bytes(embedded.download(job_id, f"alternatives/{k}.bvh"))
         motion = read_bvh(path)
         assert motion.n_frames > 30
+        # the same dance as USD (output.formats usd), downloaded through the API
+        usd = tmp_path / f"{k}.usd"
+        usd.write_bytes(embedded.download(job_id, f"alternatives/{k}.usd"))
+        _, got = joint_world_positions(usd, [0, motion.n_frames - 1])
+        pos, _ = forward_kinematics(motion)
+        assert np.abs(got - pos[[0, -1]]).max() < 1e-3
     timeline = json.loads(embedded.download(job_id, "timeline.json"))
     assert [a["index"] for a in timeline["alternatives"]] == [0, 1]
     # the embedded default really ran without servers: SQLite file and broker folders exist
