@@ -210,6 +210,40 @@ def render(
     return list_result_files(store, job_id)
 
 
+def render_couple_result(
+    store: ObjectStore,
+    job_id: str,
+    spec: Spec,
+    analysis: MusicAnalysis,
+    audio: dict[str, str] | None = None,
+) -> list[str]:
+    """A couple job (``spec.couple``): the search on ``spec.dataset``'s couple graph in this
+    process (``couple.graph.open_couple_graph``; the graph store serves solo graphs) and the
+    render for two (``alternatives/<k>/lead.bvh`` and ``follow.bvh``, BVH only: the fbx queue
+    converts solo alternatives), published at ``jobs/<job_id>/``; returns the file names.
+    Raises NotFoundError(``couple_graph_missing``) where the library has no couple graph."""
+    if store.published(jobs.result_key(job_id)) is not None:
+        return list_result_files(store, job_id)
+    from dancegraph.couple.graph import open_couple_graph
+    from dancegraph.couple.render import render_couple
+    from dancegraph.graph.search import search as search_graph
+
+    graph = open_couple_graph(store, spec.dataset)
+    found = search_graph(graph, analysis, spec)
+    bvh_spec = spec.model_copy(
+        update={"output": spec.output.model_copy(update={"formats": ["bvh"]})}
+    )
+    tmp = store.temp_dir(f"job-{job_id}")
+    try:
+        extra = {"audio": audio} if audio else None
+        render_couple(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra)
+        (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
+        store.publish(jobs.result_key(job_id), tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return list_result_files(store, job_id)
+
+
 def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
     """Names of a job's published result files, relative to ``jobs/<job_id>/``."""
     return sorted(jobs.result_files(store, job_id))
@@ -330,6 +364,12 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         with session_scope() as session:
             _set_summary(session, job_id, analysis)
         state.progress(job_id, "search", STAGES["search"])
+        if spec.couple:  # the couple's own graph, searched and rendered here
+            source = {"file": job.audio_filename, "sha256": job.audio_sha256}
+            files = render_couple_result(store, job_id, spec, analysis, source)
+            state.progress(job_id, "finalize", STAGES["finalize"])
+            finalize(store, job_id)
+            return RunOutcome("succeeded", files)
         terms = with_learned_terms(store, job.audio_key, analysis, spec.dataset)
         found = search(settings, spec, terms)
         beat.check()

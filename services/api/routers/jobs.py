@@ -330,6 +330,28 @@ def download_alternative(
 
 
 @router.get(
+    "/{job_id}/alternatives/{k}/{partner}.{fmt}",
+    summary="Download one dancer of couple alternative k (spec couple: true) as BVH",
+    response_class=FileResponse,
+    responses=_DOWNLOAD_RESPONSES,
+)
+def download_partner(
+    job_id: str,
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    partner: Literal["lead", "follow"] = Path(..., description="which dancer of the couple"),
+    fmt: Literal["bvh"] = Path(..., description="file format"),
+    tenant: Tenant = Depends(get_tenant),
+    db: Session = Depends(get_db),
+    store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
+):
+    job = _finished_job(db, tenant, job_id)
+    what = f"couple alternative {k}'s {partner} as {fmt} (spec couple)"
+    key = _result_key(store, job, f"alternatives/{k}/{partner}.{fmt}", what, "k")
+    return result_response(store, settings, key, f"{job.id}-{k}-{partner}.{fmt}", _MEDIA[fmt])
+
+
+@router.get(
     "/{job_id}/timeline.json",
     summary="Download the timeline (bars, phrases, chosen nodes, costs)",
     response_class=FileResponse,
