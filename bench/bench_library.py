@@ -56,18 +56,22 @@ def library_folder(out: Path, salsa: tuple[str, ...], modern: tuple[str, ...]) -
     return out, manifest
 
 
-def dance_seams(store: ObjectStore, name: str, analysis) -> dict:
-    """Search and render ``name``'s graph on a song's ``analysis``; the dance's seams scored
-    against the library's own takes (``seam_report``), the chance row, and the seams where the
-    dance crosses from one style to the other (``cross``)."""
+def dance_seams(store: ObjectStore, name: str, analysis, only: str | None = None) -> dict:
+    """Search and render ``name``'s graph on a song's ``analysis`` (``only``: a style whose
+    takes alone may dance, the others excluded); the dance's seams scored against the frames of
+    the library's own takes of the styles it danced (``seam_report``: each library's own p99),
+    the chance row, and the seams where the dance crosses from one style to the other."""
     from dancegraph.graph.search import search
     from dancegraph.render import render_path
     from dancegraph.spec import parse_spec
 
     graph = load_current(store, name)
     dataset = load_dataset(store, name)
-    lib = load_library(graph, dataset)
-    found = search(graph, analysis, parse_spec({"dataset": name, "alternatives": 1}))
+    style = {c.id: c.style for c in dataset.clips}
+    spec: dict = {"dataset": name, "alternatives": 1}
+    if only:
+        spec["exclude"] = [{"node": f"{c}:*"} for c, s in style.items() if s != only]
+    found = search(graph, analysis, parse_spec(spec))
     alt = found.alternatives[0]
     ids = [graph.node_ids[int(n)] for n in alt.index]
     motion, rep = render_path(
@@ -78,28 +82,35 @@ def dance_seams(store: ObjectStore, name: str, analysis) -> dict:
         duration_s=float(analysis.duration_s),
         placements=alt.placements,
     )
+    bar_style = [style[i.split(":")[0]] for i in ids]
+    danced = set(bar_style)
+    lib = load_library(graph, _styles_only(dataset, danced))
+    assert lib.seams is not None and lib.seams.chance is not None
     pos = forward_kinematics(motion)[0]
-    assert lib.seams is not None
     seams = seam_report(pos, EVAL_FPS, rep["seams"], lib.seams)
-    style = {c.id: c.style for c in dataset.clips}
-    bar_style = [style[i.split(":")[0].split("~")[0]] for i in ids]
     cross = [
         s
         for s, b in zip(rep["seams"], rep["seam_bars"], strict=True)
         if b > 0 and bar_style[b] != bar_style[b - 1]
     ]
-    crossing = seam_report(pos, EVAL_FPS, cross, lib.seams) if cross else None
     return {
+        "styles": {s: bar_style.count(s) for s in sorted(danced)},
         "seams": seams["count"],
         "flagged_share": round(seams["flagged_share"], 3),
         "median_percentile": _r(seams["median_percentile"]),
         "chance_flagged_share": round(lib.seams.chance["flagged_share"], 3),
-        "chance_median_percentile": round(lib.seams.chance["median_percentile"], 1),
-        "styles": dict(zip(*np.unique(bar_style, return_counts=True), strict=True)),
+        "chance_median_percentile": _r(lib.seams.chance["median_percentile"]),
         "cross_seams": len(cross),
-        "cross_flagged": crossing["flagged"] if crossing else 0,
-        "cross_median_percentile": _r(crossing["median_percentile"]) if crossing else None,
     }
+
+
+def _styles_only(dataset, styles: set[str]):
+    """``dataset`` with only the takes of ``styles`` (the reference of those libraries)."""
+    from dataclasses import replace
+
+    clips = [c for c in dataset.clips if c.style in styles]
+    keep = {c.id for c in clips}
+    return replace(dataset, clips=clips, bars=[b for b in dataset.bars if b.clip_id in keep])
 
 
 def _r(x: float | None) -> float | None:
@@ -148,7 +159,10 @@ def _mixed(tmp: Path, songs: list[Path]) -> None:
             if c.retarget:
                 print(f"  retargeted {c.id}: {c.retarget}")
         for song, analysis in analyses.items():
-            print(f"  {song[:40]}: {json.dumps(dance_seams(store, name, analysis), default=str)}")
+            for only in (None, "modern") if name == "mixed" else (None,):
+                row = dance_seams(store, name, analysis, only)
+                label = f"{song[:32]}" + (f" ({only} only)" if only else "")
+                print(f"  {label}: {json.dumps(row, default=str)}")
 
 
 def _generated(tmp: Path) -> None:

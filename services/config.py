@@ -134,6 +134,44 @@ class Settings(BaseSettings):
         8.0, gt=0, description="shortest accepted song (two bars at 60 bpm)"
     )
     max_batch_items: int = Field(100, gt=0, description="most songs in one POST /v1/batches")
+    library_max_takes: int = Field(200, gt=0, description="most takes in one uploaded library")
+    library_max_minutes: float = Field(
+        180.0, gt=0, description="most minutes of motion in one uploaded library (all takes)"
+    )
+    library_max_upload_bytes: int = Field(
+        1024 * 1024 * 1024, gt=0, description="largest POST /v1/datasets body (all parts)"
+    )
+    library_max_per_tenant: int = Field(
+        20, gt=0, description="most libraries (names) one tenant may keep"
+    )
+    library_archive_max_bytes: int = Field(
+        4 * 1024 * 1024 * 1024,
+        gt=0,
+        description="largest total uncompressed size of an uploaded zip/tar",
+    )
+    library_archive_max_ratio: float = Field(
+        200.0, gt=1, description="largest uncompressed/compressed ratio of an archive member"
+    )
+    library_archive_max_members: int = Field(
+        2000, gt=0, description="most members in an uploaded zip/tar"
+    )
+    library_sandbox_memory_bytes: int = Field(
+        6 * 1024 * 1024 * 1024,
+        gt=0,
+        description="address-space limit of the sandboxed child that parses an upload",
+    )
+    library_sandbox_cpu_s: float = Field(
+        900.0, gt=0, description="CPU-seconds limit of the sandboxed import child"
+    )
+    library_sandbox_wall_s: float = Field(
+        1200.0, gt=0, description="wall-clock limit of the sandboxed import child"
+    )
+    graphstore_memory_bytes: int = Field(
+        2 * 1024 * 1024 * 1024,
+        gt=0,
+        description="graph-store budget: loaded graphs' arrays above it are evicted, least "
+        "recently used first",
+    )
     job_timeout_s: float = Field(
         600.0, gt=0, description="a running job with no heartbeat this long is stuck"
     )

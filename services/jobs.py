@@ -434,10 +434,12 @@ def upsert_dataset(
     licence: str = "",
     embedding: str = "descriptor",
 ) -> Dataset:
-    """Register (or update) a dataset version in the catalog the API lists."""
+    """Register (or update) a public library's built version (``tenant_id`` NULL, its graph
+    under its own name) in the catalog the API lists; tenants' libraries are
+    ``services.common.libraries``'."""
     row = session.scalar(select(Dataset).where(Dataset.name == name, Dataset.version == version))
     if row is None:
-        row = Dataset(name=name, version=version)
+        row = Dataset(name=name, version=version, tenant_id=None, graph_name=name)
         session.add(row)
     row.graph_key = graph_key
     row.stats = stats or {}
@@ -445,26 +447,6 @@ def upsert_dataset(
     row.embedding = embedding
     session.flush()
     return row
-
-
-def list_datasets(session: Session) -> list[Dataset]:
-    """The newest version of each dataset, by name."""
-    rows = session.scalars(
-        select(Dataset).order_by(Dataset.name, Dataset.created_at.desc(), Dataset.id.desc())
-    )
-    latest: dict[str, Dataset] = {}
-    for row in rows:
-        latest.setdefault(row.name, row)
-    return list(latest.values())
-
-
-def get_dataset(session: Session, name: str) -> Dataset | None:
-    return session.scalar(
-        select(Dataset)
-        .where(Dataset.name == name)
-        .order_by(Dataset.created_at.desc(), Dataset.id.desc())
-        .limit(1)
-    )
 
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""Database models (SQLAlchemy 2): tenants, API keys, jobs, batches, datasets.
+"""Database models (SQLAlchemy 2): tenants, API keys, jobs, batches, datasets (motion libraries).
 
 The ``jobs`` row is the source of truth for a job's state; Celery messages only carry its id.
 Every schema change gets an Alembic migration in ``migrations/versions``.
@@ -133,6 +133,12 @@ class Job(Base):
         String(200), nullable=True, comment="hostname/pid running it"
     )
     callback_url: Mapped[str | None] = mapped_column(Text, nullable=True)
+    dataset_graph: Mapped[str | None] = mapped_column(
+        String(64), nullable=True, comment="graph the job pinned when it started"
+    )
+    dataset_version: Mapped[str | None] = mapped_column(
+        String(64), nullable=True, comment="graph version the job pinned when it started"
+    )
     webhook_status: Mapped[str] = mapped_column(String(16), default=WEBHOOK_NONE)
     webhook_attempts: Mapped[int] = mapped_column(Integer, default=0)
     webhook_last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
@@ -159,13 +165,26 @@ class Job(Base):
 
 
 class Dataset(Base):
-    """A motion dataset with a built graph artifact, as the API lists it."""
+    """One version of a motion library: a public one the operator installed (``tenant_id``
+    NULL, built from a shell, always ``succeeded``), or a tenant's upload (``POST
+    /v1/datasets``), which is also the import-and-build job of that version: the same
+    queued → running → succeeded | failed lifecycle, lease, heartbeat and crash count as a
+    dance job (``services.common.libraries``)."""
 
     __tablename__ = "datasets"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    tenant_id: Mapped[str | None] = mapped_column(
+        ForeignKey("tenants.id", ondelete="CASCADE"),
+        nullable=True,
+        index=True,
+        comment="owner; NULL: a public library (read-only to tenants)",
+    )
     name: Mapped[str] = mapped_column(String(64), index=True)
     version: Mapped[str] = mapped_column(String(64))
+    graph_name: Mapped[str | None] = mapped_column(
+        String(64), nullable=True, comment="the graph store's name of this version's graph"
+    )
     graph_key: Mapped[str | None] = mapped_column(
         String(300), nullable=True, comment="object-store key"
     )
@@ -174,9 +193,39 @@ class Dataset(Base):
     embedding: Mapped[str] = mapped_column(
         String(64), default="descriptor", comment="style embedding kind"
     )
+    status: Mapped[str] = mapped_column(String(16), default=SUCCEEDED, server_default=SUCCEEDED)
+    stage: Mapped[str] = mapped_column(String(32), default="done", server_default="done")
+    progress: Mapped[float] = mapped_column(
+        Float, default=100.0, server_default="100", comment="percent, 0..100"
+    )
+    upload: Mapped[dict[str, Any] | None] = mapped_column(
+        JSONType, nullable=True, comment="the uploaded files' keys and the manifest"
+    )
+    report: Mapped[dict[str, Any] | None] = mapped_column(
+        JSONType, nullable=True, comment="per-take results, warnings, graph build"
+    )
+    error_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    error_message: Mapped[str | None] = mapped_column(Text, nullable=True)
+    error_field: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    crashes: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    worker: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    deleted_at: Mapped[datetime | None] = mapped_column(
+        DateTime(timezone=True),
+        nullable=True,
+        comment="deleted by its owner; objects removed once no live job pins it",
+    )
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime | None] = mapped_column(
+        DateTime(timezone=True), nullable=True, default=utcnow, onupdate=utcnow
+    )
 
-    __table_args__ = (UniqueConstraint("name", "version", name="uq_datasets_name_version"),)
+    __table_args__ = (
+        UniqueConstraint("name", "version", name="uq_datasets_name_version"),
+        Index("ix_datasets_status_heartbeat", "status", "heartbeat_at"),
+    )
 
 
 class Rig(Base):

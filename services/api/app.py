@@ -95,7 +95,9 @@ class AppContext:
                 return None
             url = self.settings.graphstore_url
             self._graphstore = (
-                LocalGraphStore(self.store) if url == "local" else HttpGraphStore(url)
+                LocalGraphStore(self.store, self.settings.graphstore_memory_bytes)
+                if url == "local"
+                else HttpGraphStore(url)
             )
         return self._graphstore
 

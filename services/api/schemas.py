@@ -89,13 +89,50 @@ class BatchOut(BaseModel):
     jobs: list[JobOut]
 
 
+class DatasetTakeOut(BaseModel):
+    """One take of an import: imported (its grid) or failed (its code)."""
+
+    file: str
+    id: str | None = None
+    status: Literal["imported", "failed", "excluded"]
+    code: str | None = Field(None, description="why it failed, as a stable code")
+    message: str | None = None
+    duration_s: float | None = None
+    tempo_bpm: float | None = None
+    bars: int | None = None
+    beat_source: str | None = None
+    flags: list[str] = Field(default_factory=list)
+
+
+class DatasetVersionOut(BaseModel):
+    version: str
+    status: JobStatus
+    created_at: UtcDatetime
+    graph_version: str | None = None
+
+
 class DatasetOut(BaseModel):
     name: str
-    version: str
+    version: str = Field(..., description="this version's id (public libraries: the graph version)")
     licence: str
     embedding: str
     stats: dict[str, Any]
     created_at: UtcDatetime | None = None
+    public: bool = Field(True, description="installed by the operator: read-only to tenants")
+    url: str = ""
+    status: JobStatus = Field("succeeded", description="this version's import and build")
+    stage: str = "done"
+    progress: float = Field(100.0, ge=0, le=100, description="percent")
+    graph_version: str | None = Field(None, description="the built graph's version")
+    nodes: int | None = None
+    edges: int | None = None
+    takes: list[DatasetTakeOut] = Field(default_factory=list)
+    warnings: list[str] = Field(default_factory=list)
+    error: ErrorOut | None = None
+    finished_at: UtcDatetime | None = None
+    versions: list[DatasetVersionOut] = Field(
+        default_factory=list, description="every live version of a tenant library, newest first"
+    )
 
 
 class DatasetList(BaseModel):

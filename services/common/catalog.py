@@ -1,5 +1,7 @@
-"""The dataset catalog the API validates specs against: the ``datasets`` table, filled from the
-graph store (which knows the built graphs) when a name is not known yet."""
+"""The dataset catalog the API validates specs against: the ``datasets`` table. Public
+libraries (``tenant_id`` NULL) are filled from the graph store (which knows the built graphs)
+when a name is not known yet; tenants' libraries are rows of their own
+(``services.common.libraries``), and their graphs (``lib-…``) are never listed as public."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from services import jobs
+from services.common import libraries
 from services.models import Dataset
 
 log = logging.getLogger("dancegraph.api")
@@ -38,7 +41,7 @@ def refresh_catalog(session: Session, graphstore) -> int:
     for g in items or []:
         if isinstance(g, str):
             g = {"name": g}
-        if not isinstance(g, dict) or not g.get("name"):
+        if not isinstance(g, dict) or not g.get("name") or libraries.is_library_graph(g["name"]):
             continue
         stats = (
             g.get("stats")
@@ -65,15 +68,19 @@ def refresh_catalog(session: Session, graphstore) -> int:
     return n
 
 
-def find_dataset(session: Session, name: str, graphstore) -> Dataset | None:
-    """The catalog entry of ``name``, asking the graph store on a miss (rate-limited)."""
-    row = jobs.get_dataset(session, name)
+def find_dataset(
+    session: Session, name: str, graphstore, tenant_id: str | None = None
+) -> Dataset | None:
+    """The library a job of ``tenant_id`` would use for ``name`` (its own newest built version,
+    else the public one; ``libraries.usable_row``), asking the graph store for public graphs on
+    a miss (rate-limited). None: no such library for this tenant."""
+    row = libraries.usable_row(session, tenant_id, name)
     if row is not None:
         return row
     with _refresh_lock:
         if time.monotonic() - _last_refresh > _REFRESH_EVERY_S:
             refresh_catalog(session, graphstore)
-    return jobs.get_dataset(session, name)  # what this refresh, or the one waited for, found
+    return libraries.usable_row(session, tenant_id, name)  # what this or the awaited refresh found
 
 
 def reset() -> None:

@@ -28,10 +28,11 @@ def check_callback(settings: Settings, spec: Spec) -> None:
         webhooks.check_callback_url(str(spec.callback_url), settings.webhook_allow_networks)
 
 
-def check_dataset(settings: Settings, spec: Spec, graphstore) -> None:
-    """422 ``unknown_dataset`` unless the catalog (or the graph store) knows ``spec.dataset``."""
+def check_dataset(settings: Settings, spec: Spec, graphstore, tenant_id: str | None = None) -> None:
+    """422 ``unknown_dataset`` unless ``spec.dataset`` is a public library (the catalog, or the
+    graph store) or a built library of the tenant ``tenant_id``."""
     with session_scope(settings.database_url) as session:
-        if catalog.find_dataset(session, spec.dataset, graphstore) is None:
+        if catalog.find_dataset(session, spec.dataset, graphstore, tenant_id) is None:
             raise ApiError(
                 422, "unknown_dataset", f"no dataset named {spec.dataset!r}", field="spec.dataset"
             )
@@ -80,7 +81,7 @@ def submit_job(
 ) -> tuple[Job, bool]:
     """Validate, store and enqueue one job; returns ``(job, created)`` (False: idempotent replay)."""
     check_callback(settings, spec)
-    check_dataset(settings, spec, graphstore)
+    check_dataset(settings, spec, graphstore, tenant_id)
     check_rig(settings, tenant_id, spec)
     checked = check_audio(upload, settings, store)
     spec_dict = spec_json(spec)
@@ -132,7 +133,7 @@ def submit_batch(
             field="audio",
         )
     check_callback(settings, spec)
-    check_dataset(settings, spec, graphstore)
+    check_dataset(settings, spec, graphstore, tenant_id)
     check_rig(settings, tenant_id, spec)
     spec_dict = spec_json(spec)
     if idempotency_key is not None:

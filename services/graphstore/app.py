@@ -2,7 +2,10 @@
 
 A thin HTTP shell over :class:`services.graphstore.client.LocalGraphStore`, which loads each
 dataset's current graph artifact from the object store (``dancegraph.graph.artifact``) and
-reloads it when a new build lands (the old version keeps answering requests already holding it).
+reloads it when a new build lands (the old version keeps answering requests already holding it);
+graphs load on first use and are evicted least-recently-used above
+``DANCEGRAPH_GRAPHSTORE_MEMORY_BYTES``. Nothing lives only in one replica: any number of them
+can serve the same object store.
 
 Run: ``uvicorn services.graphstore.app:app`` (object store: ``DANCEGRAPH_STORE_URL`` for S3, else
 the folder ``DANCEGRAPH_STORE_ROOT`` or ``$DANCEGRAPH_HOME/store``). Errors are RFC 9457 problem details with a stable ``code``: an
@@ -13,11 +16,12 @@ Endpoints:
 
 - ``GET /v1/graphs`` → ``{items: [{name, version, graph_key, nodes, edges, embedding, ...}], next_cursor}``
 - ``GET /v1/graphs/{name}`` → version, stats, which embedding, build parameters, dataset
-- ``POST /v1/graphs/{name}/search`` ``{analysis, spec}`` → ``SearchResult.to_dict()``
+- ``POST /v1/graphs/{name}/search[?version=V]`` ``{analysis, spec}`` → ``SearchResult.to_dict()``
+  (``version``: the graph version a job pinned; default the current one)
 - ``GET /v1/graphs/{name}/skeleton`` → ``Skeleton.to_dict()``
 - ``GET /v1/graphs/{name}/nodes/{node_id}`` → provenance (take, bar, frames, augmentation)
 - ``GET /v1/graphs/{name}/nodes/{node_id}/motion`` → the bar's motion (fps, root, rotations)
-- ``GET /healthz`` → liveness and the loaded graph versions
+- ``GET /healthz`` → liveness, the loaded graph versions and the memory budget's use
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import numpy as np
-from fastapi import Body, FastAPI
+from fastapi import Body, FastAPI, Query
 from fastapi.responses import JSONResponse
 
 from dancegraph import __version__
@@ -72,14 +76,17 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
 
     def graphs() -> LocalGraphStore:
         if "local" not in state:
-            state["local"] = LocalGraphStore(store or object_store(get_settings()))
+            settings = get_settings()
+            state["local"] = LocalGraphStore(
+                store or object_store(settings), settings.graphstore_memory_bytes
+            )
         return state["local"]
 
     app.state.graphs = graphs
 
     @app.get("/healthz")
     def healthz() -> dict:
-        return {"status": "ok", "loaded": graphs().loaded()}
+        return {"status": "ok", "loaded": graphs().loaded(), "memory": graphs().memory()}
 
     @app.get("/v1/graphs")
     def list_graphs() -> dict:
@@ -94,9 +101,12 @@ def create_app(store: ObjectStore | None = None, warm_up: bool = False) -> FastA
         name: str,
         analysis: dict = Body(..., description="MusicAnalysis.to_dict() of the song"),
         spec: dict | None = Body(None, description="the constraint spec (dancegraph.spec.Spec)"),
+        version: str | None = Query(None, max_length=100, description="graph version (pinned)"),
     ) -> JSONResponse:
         # the path's dataset wins over the spec's; both bodies are parsed once, here
-        result = graphs().search(parse_analysis(analysis), parse_spec(spec, dataset=name))
+        result = graphs().search(
+            parse_analysis(analysis), parse_spec(spec, dataset=name), version=version
+        )
         return JSONResponse(_jsonable(result.to_dict()))
 
     @app.get("/v1/graphs/{name}/skeleton")

@@ -10,8 +10,10 @@ client sends their JSON forms) and raise the same ``DanceGraphError`` codes
 
 from __future__ import annotations
 
+import json
 import threading
 from abc import ABC, abstractmethod
+from collections import OrderedDict
 
 import numpy as np
 
@@ -36,9 +38,12 @@ class GraphStoreClient(ABC):
         """One graph: version, build parameters, stats, which embedding, the dataset it was built from."""
 
     @abstractmethod
-    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
-        """Paths through the graph of ``spec.dataset`` for a song's analysis; the result names
-        the graph version it was searched on (``graph_name``, ``graph_version``)."""
+    def search(
+        self, analysis: MusicAnalysis, spec: Spec, version: str | None = None
+    ) -> SearchResult:
+        """Paths through the graph of ``spec.dataset`` (``version``: that version, pinned by the
+        job; default the current one) for a song's analysis; the result names the graph version
+        it was searched on (``graph_name``, ``graph_version``)."""
 
     @abstractmethod
     def node(self, dataset: str, node_id: str) -> dict:
@@ -81,47 +86,88 @@ def _analysis_error(message: str) -> DanceGraphError:
 
 
 class LocalGraphStore(GraphStoreClient):
-    """Graphs loaded in this process from ``store`` (memory-mapped), reloaded when a build lands.
+    """Graphs loaded in this process from ``store`` (memory-mapped) on first use, kept under a
+    memory budget least-recently-used first, reloaded when a build lands.
 
-    Each call checks ``graphs/<name>/current``; a new version is loaded beside the old one, which
-    keeps answering the calls already holding it.
+    Each ``graph(name)`` call reads ``graphs/<name>/current`` from the store (so replicas that
+    share only the object store agree on what is current); a new version is loaded beside the
+    old one, which keeps answering the calls already holding it. ``memory_budget_bytes``: the
+    loaded graphs' arrays (``graph_nbytes``) above it are evicted, least recently used first,
+    never the one just asked for (None: no budget).
     """
 
-    def __init__(self, store: ObjectStore):
+    def __init__(self, store: ObjectStore, memory_budget_bytes: int | None = None):
         self.store = store
-        self._graphs: dict[str, artifact.MotionGraph] = {}
+        self.memory_budget_bytes = memory_budget_bytes
+        self._graphs: OrderedDict[tuple[str, str], artifact.MotionGraph] = OrderedDict()
         self._lock = threading.Lock()
+        self.evictions = 0
 
     def graph(self, name: str) -> artifact.MotionGraph:
         """The current graph of dataset ``name``; NotFoundError(code='unknown_dataset') if none."""
-        version = artifact.current_version(self.store, name)
+        return self.graph_version(name, artifact.current_version(self.store, name))
+
+    def graph_version(self, name: str, version: str) -> artifact.MotionGraph:
+        """A given version of ``name``'s graph (a job's pinned one, or the one a search answered
+        from), loaded on first use; NotFoundError ``unknown_graph_version`` if it does not exist."""
+        key = (name, version)
         with self._lock:
-            cached = self._graphs.get(name)
-            if cached is not None and cached.version == version:
+            cached = self._graphs.get(key)
+            if cached is not None:
+                self._graphs.move_to_end(key)
                 return cached
         loaded = artifact.open_graph(self.store, name, version)
         with self._lock:
-            self._graphs[name] = loaded
+            self._graphs[key] = loaded
+            self._graphs.move_to_end(key)
+            self._evict(keep=key)
         return loaded
 
-    def graph_version(self, name: str, version: str) -> artifact.MotionGraph:
-        """A given version of ``name``'s graph (e.g. the one a search answered from)."""
-        with self._lock:
-            cached = self._graphs.get(name)
-        if cached is not None and cached.version == version:
-            return cached
-        return artifact.open_graph(self.store, name, version)
+    def _evict(self, keep: tuple[str, str]) -> None:
+        """Drop least-recently-used graphs while over the budget (caller holds the lock)."""
+        if self.memory_budget_bytes is None:
+            return
+        while self.resident_bytes() > self.memory_budget_bytes and len(self._graphs) > 1:
+            oldest = next(iter(self._graphs))
+            if oldest == keep:
+                break
+            del self._graphs[oldest]
+            self.evictions += 1
+
+    def resident_bytes(self) -> int:
+        """Bytes of the loaded graphs' arrays (their resident size once paged in)."""
+        return sum(graph_nbytes(g) for g in list(self._graphs.values()))
 
     def loaded(self) -> dict[str, str]:
+        """Dataset name → the most recently used loaded version."""
         with self._lock:
-            return {name: g.version for name, g in self._graphs.items()}
+            return {name: version for name, version in self._graphs}
+
+    def memory(self) -> dict:
+        """The budget, the bytes the loaded graphs hold, how many, and evictions so far."""
+        with self._lock:
+            return {
+                "budget_bytes": self.memory_budget_bytes,
+                "resident_bytes": self.resident_bytes(),
+                "graphs": len(self._graphs),
+                "evictions": self.evictions,
+            }
+
+    def forget(self, name: str) -> None:
+        """Unload every version of ``name`` (its library was deleted)."""
+        with self._lock:
+            for key in [k for k in self._graphs if k[0] == name]:
+                del self._graphs[key]
 
     def list_graphs(self) -> list[dict]:
+        """Every current graph's summary, read from its manifest alone (no arrays loaded)."""
         out = []
         for name in artifact.list_graphs(self.store):
             try:
-                out.append(_summary(self.graph(name)))
-            except DanceGraphError:
+                version = artifact.current_version(self.store, name)
+                key = f"{artifact.graph_key(name, version)}/manifest.json"
+                out.append(_manifest_summary(json.loads(self.store.get_bytes(key))))
+            except (DanceGraphError, FileNotFoundError, ValueError):
                 continue  # a broken build is left out of the list, not a failure of the list
         return out
 
@@ -149,10 +195,13 @@ class LocalGraphStore(GraphStoreClient):
         )
         return info
 
-    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
+    def search(
+        self, analysis: MusicAnalysis, spec: Spec, version: str | None = None
+    ) -> SearchResult:
         from dancegraph.graph.search import search
 
-        return search(self.graph(spec.dataset), analysis, spec)
+        graph = self.graph_version(spec.dataset, version) if version else self.graph(spec.dataset)
+        return search(graph, analysis, spec)
 
     def _node_index(self, graph: artifact.MotionGraph, node_id: str) -> int:
         try:
@@ -176,16 +225,27 @@ class LocalGraphStore(GraphStoreClient):
         return graph.node_motion(self._node_index(graph, node_id))
 
 
+def graph_nbytes(graph: artifact.MotionGraph) -> int:
+    """A loaded graph's resident size: the bytes of its arrays (memory-mapped or not)."""
+    return int(sum(np.asarray(a).nbytes for a in graph.arrays.values()))
+
+
 def _summary(graph: artifact.MotionGraph) -> dict:
-    manifest = graph.manifest
+    return {**_manifest_summary(graph.manifest), "nodes": graph.n_nodes, "edges": graph.n_edges}
+
+
+def _manifest_summary(manifest: dict) -> dict:
+    """Name, version, key, size, embedding and licence of a graph, from its manifest."""
     dataset = manifest.get("dataset") or {}
     embedding = manifest.get("embedding") or {}
+    build = manifest.get("build") or {}
+    name, version = manifest.get("name", ""), manifest.get("version", "")
     return {
-        "name": graph.name,
-        "version": graph.version,
-        "graph_key": artifact.graph_key(graph.name, graph.version),
-        "nodes": graph.n_nodes,
-        "edges": graph.n_edges,
+        "name": name,
+        "version": version,
+        "graph_key": artifact.graph_key(name, version),
+        "nodes": build.get("nodes"),
+        "edges": build.get("edges"),
         "embedding": embedding.get("version", "unknown"),
         "dataset_version": dataset.get("version"),
         "licence": dataset.get("licence"),
@@ -271,9 +331,12 @@ class HttpGraphStore(GraphStoreClient):
     def graph_info(self, name: str) -> dict:
         return self._call("GET", f"/v1/graphs/{name}")
 
-    def search(self, analysis: MusicAnalysis, spec: Spec) -> SearchResult:
+    def search(
+        self, analysis: MusicAnalysis, spec: Spec, version: str | None = None
+    ) -> SearchResult:
         body = {"analysis": analysis.to_dict(), "spec": spec.model_dump(mode="json")}
-        data = self._call("POST", f"/v1/graphs/{spec.dataset}/search", json=body)
+        params = {"version": version} if version else None
+        data = self._call("POST", f"/v1/graphs/{spec.dataset}/search", json=body, params=params)
         try:
             return SearchResult.from_dict(data)
         except (KeyError, TypeError, ValueError) as exc:

@@ -29,12 +29,14 @@ TASK_EXPORT_FBX = "dancegraph.export_fbx"
 TASK_DELIVER_WEBHOOK = "dancegraph.deliver_webhook"
 TASK_SUBMIT = "dancegraph.submit"
 TASK_REAP = "dancegraph.reap"
+TASK_IMPORT_LIBRARY = "dancegraph.import_library"
 
 TASK_QUEUES = {
     TASK_RUN_JOB: QUEUE_ANALYSIS,
     TASK_SUBMIT: QUEUE_ANALYSIS,
     TASK_DELIVER_WEBHOOK: QUEUE_ANALYSIS,
     TASK_REAP: QUEUE_ANALYSIS,
+    TASK_IMPORT_LIBRARY: QUEUE_ANALYSIS,
     TASK_EXPORT_FBX: QUEUE_FBX,
 }
 

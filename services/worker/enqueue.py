@@ -14,6 +14,7 @@ import kombu.exceptions
 from services.worker.celery_app import (
     TASK_DELIVER_WEBHOOK,
     TASK_EXPORT_FBX,
+    TASK_IMPORT_LIBRARY,
     TASK_QUEUES,
     TASK_RUN_JOB,
     app,
@@ -76,6 +77,18 @@ def enqueue_webhook(job_id: str) -> bool:
 def requeue_job(job_id: str) -> bool:
     """Queue a job again (reaper); False when the broker is unreachable (next sweep retries)."""
     return try_send(TASK_RUN_JOB, job_id)
+
+
+def enqueue_library(row_id: int) -> None:
+    """Queue a library version's import and graph build (``dancegraph.import_library`` on the
+    ``analysis`` queue; the message carries the ``datasets`` row id). Raises when the broker is
+    unreachable, so the API can refuse the upload (503) instead of keeping it."""
+    _send(TASK_IMPORT_LIBRARY, str(row_id))
+
+
+def requeue_library(row_id: int) -> bool:
+    """Queue a library version's import again (reaper); False when the broker is unreachable."""
+    return try_send(TASK_IMPORT_LIBRARY, str(row_id))
 
 
 def enqueue_webhook_if_pending(job_id: str) -> None:

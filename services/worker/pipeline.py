@@ -110,23 +110,30 @@ def analyze(
     return MusicAnalysis.from_dict(data)
 
 
-def style_tempo_range(store: ObjectStore, spec: Spec) -> tuple[float, float] | None:
+def style_tempo_range(
+    store: ObjectStore, spec: Spec, version: str | None = None
+) -> tuple[float, float] | None:
     """The style tempo range whose octave the song's bars count (``render.style_tempo_range``:
-    the spec's, else the one the dataset's current graph carries); without a graph only the
-    spec's (the search stage names the missing graph)."""
+    the spec's, else the one the dataset's graph carries: ``version``, default the current);
+    without a graph only the spec's (the search stage names the missing graph)."""
     from dancegraph.render import style_tempo_range as for_graph
 
     try:
-        graph = load_graph(store, spec.dataset)
+        graph = load_graph(store, spec.dataset, version)
     except DanceGraphError:
         graph = None
     return for_graph(spec, graph)
 
 
 def with_learned_terms(
-    store: ObjectStore, audio_key: str, analysis: MusicAnalysis, dataset: str
+    store: ObjectStore,
+    audio_key: str,
+    analysis: MusicAnalysis,
+    dataset: str,
+    version: str | None = None,
 ) -> MusicAnalysis:
-    """``analysis`` plus the music terms of the dataset's current graph's learned models (E_M
+    """``analysis`` plus the music terms of the dataset's graph's (``version``, default the
+    current) learned models (E_M
     style of the uploaded audio, rhythm top-3; ``embed.learned.add_music_terms``), so the search
     need not fall back to the descriptor bridge; ``analysis`` itself for a descriptor graph.
     Computed per job (about a second for a 3-min song), not cached: the cached analysis stays
@@ -134,28 +141,45 @@ def with_learned_terms(
     from dancegraph.embed.learned import add_music_terms
 
     try:
-        graph = load_graph(store, dataset)
+        graph = load_graph(store, dataset, version)
     except DanceGraphError:
         return analysis  # no such graph: the search stage names the problem
     return add_music_terms(analysis, graph, str(store.local_path(audio_key)))
 
 
-def search(settings: Settings, spec: Spec, analysis: MusicAnalysis) -> SearchResult:
-    """Graph search of ``spec.dataset`` through the graph-store client."""
-    return graphstore_client(settings).search(analysis, spec)
+def search(
+    settings: Settings, spec: Spec, analysis: MusicAnalysis, version: str | None = None
+) -> SearchResult:
+    """Graph search of ``spec.dataset`` (``version``: the job's pinned one) through the
+    graph-store client."""
+    return graphstore_client(settings).search(analysis, spec, version)
+
+
+def pin_dataset(store: ObjectStore, job, spec: Spec) -> tuple[Spec, dict]:
+    """The spec on the graph the job pinned when it started (``libraries.pin_job``: the
+    tenant's newest built version of ``spec.dataset``, else the public library's current
+    graph) and the timeline's ``library`` record (name, graph, graph_version)."""
+    from services.common.libraries import pin_job
+
+    with session_scope() as session:
+        graph, version = pin_job(session, store, job, spec.dataset)
+    library = {"name": spec.dataset, "graph": graph, "graph_version": version}
+    return spec.model_copy(update={"dataset": graph}), library
 
 
 def graphstore_client(settings: Settings) -> GraphStoreClient:
     """LocalGraphStore (in-process) when ``graphstore_url`` is 'local', else HttpGraphStore."""
-    return _graphstore_client(settings.graphstore_url, object_store(settings))
+    return _graphstore_client(
+        settings.graphstore_url, object_store(settings), settings.graphstore_memory_bytes
+    )
 
 
 @lru_cache(maxsize=4)
-def _graphstore_client(url: str, store: ObjectStore) -> GraphStoreClient:
+def _graphstore_client(url: str, store: ObjectStore, budget: int) -> GraphStoreClient:
     from services.graphstore.client import HttpGraphStore, LocalGraphStore
 
     if url == "local":
-        return LocalGraphStore(store)
+        return LocalGraphStore(store, budget)
     return HttpGraphStore(url)
 
 
@@ -183,13 +207,15 @@ def render(
     found: SearchResult,
     audio: dict[str, str] | None = None,
     on_rig=None,
+    library: dict | None = None,
 ) -> list[str]:
     """Render BVH + timeline and publish them at ``jobs/<job_id>/``; returns the file names.
 
     ``audio``: the song's ``{file, sha256}`` for the timeline's provenance (what
     ``dancegraph preview`` finds the song by). FBX is not written here: it is the ``fbx``
     queue's work (a warm Blender per worker). ``on_rig``: the hook that also writes each
-    alternative on the job's rig (``services.common.rigs.job_rig_output``).
+    alternative on the job's rig (``services.common.rigs.job_rig_output``). ``library``: the
+    library the job pinned (``pin_dataset``), for the timeline's provenance.
     """
     if store.published(jobs.result_key(job_id)) is not None:
         return list_result_files(store, job_id)
@@ -200,7 +226,7 @@ def render(
     graph = load_graph(store, spec.dataset, found.graph_version or None)
     tmp = store.temp_dir(f"job-{job_id}")
     try:
-        extra = {"audio": audio} if audio else None
+        extra = {k: v for k, v in (("audio", audio), ("library", library)) if v} or None
         render_motion(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra, on_rig=on_rig)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         # False: another worker published first; its complete result stands
@@ -358,7 +384,8 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
-        tempo_range = style_tempo_range(store, spec)
+        spec, library = pin_dataset(store, job, spec)
+        tempo_range = style_tempo_range(store, spec, library["graph_version"])
         analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename, tempo_range)
         beat.check()
         with session_scope() as session:
@@ -370,8 +397,9 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
             state.progress(job_id, "finalize", STAGES["finalize"])
             finalize(store, job_id)
             return RunOutcome("succeeded", files)
-        terms = with_learned_terms(store, job.audio_key, analysis, spec.dataset)
-        found = search(settings, spec, terms)
+        version = library["graph_version"]
+        terms = with_learned_terms(store, job.audio_key, analysis, spec.dataset, version)
+        found = search(settings, spec, terms, version)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
         source = {"file": job.audio_filename, "sha256": job.audio_sha256}
@@ -382,7 +410,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
             spec.output.rig,
             ("bvh", "glb", *(("usd",) if "usd" in spec.output.formats else ())),
         )
-        files = render(store, job_id, spec, analysis, found, source, on_rig)
+        files = render(store, job_id, spec, analysis, found, source, on_rig, library)
         beat.check()
         done = jobs.result_files(store, job_id)
         if wants_fbx(spec) and not all(

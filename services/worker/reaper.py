@@ -10,6 +10,8 @@ One sweep (``reap_once``):
    persistence). A duplicate message is harmless: ``state.claim`` lets only one worker run a job.
    Jobs rendered and waiting in the ``fbx`` queue (stage ``fbx_queued``) are not stuck: their
    FBX task is re-sent only when the ``fbx`` queue holds fewer messages than such jobs.
+   Library versions' imports get the same two rules, and deleted libraries' versions that no
+   live job pins are removed (``library_build.reap``).
 3. final jobs whose webhook is still ``pending`` long after they finished get their webhook
    queued again (its task was lost).
 4. what killed processes leave behind, untouched for ``2 × job_timeout_s``, is removed: every
@@ -39,7 +41,7 @@ from services import jobs
 from services.config import QUEUE_ANALYSIS, QUEUE_FBX, Settings, get_settings
 from services.db import session_scope
 from services.models import FINAL_STATUSES, QUEUED, WEBHOOK_PENDING, Job, utcnow
-from services.worker import enqueue, pipeline
+from services.worker import enqueue, library_build, pipeline
 
 log = logging.getLogger("dancegraph.reaper")
 
@@ -57,6 +59,7 @@ class ReapReport:
     fbx_resent: list[str] = field(default_factory=list)
     tmp_removed: int = 0
     orphans_removed: int = 0
+    libraries: dict[str, list] = field(default_factory=dict)  # library_build.reap's actions
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -70,6 +73,7 @@ class ReapReport:
             or self.fbx_resent
             or self.tmp_removed
             or self.orphans_removed
+            or any(self.libraries.values())
         )
 
 
@@ -166,6 +170,7 @@ def reap_once(
     for job_id in lost_hooks:
         if enqueue.enqueue_webhook(job_id):
             report.webhooks.append(job_id)
+    report.libraries = library_build.reap(settings)
     store = pipeline.object_store(settings)
     grace = 2 * settings.job_timeout_s
     report.tmp_removed = store.sweep_scratch(grace)

@@ -16,6 +16,7 @@ import logging
 import os
 import socket
 import threading
+from collections.abc import Callable
 
 from services import jobs
 from services.db import session_scope
@@ -79,10 +80,13 @@ def progress(job_id: str, stage: str, percent: float) -> None:
 
 
 class Heartbeat:
-    """A daemon thread that refreshes the job's heartbeat every ``interval_s`` while alive."""
+    """A daemon thread that refreshes the job's heartbeat every ``interval_s`` while alive
+    (``beat_fn``: what one beat does, default ``beat(job_id)``; False means the work is no
+    longer ours, e.g. a library version's import, ``services.worker.library_build``)."""
 
-    def __init__(self, job_id: str, interval_s: float):
+    def __init__(self, job_id: str, interval_s: float, beat_fn: Callable[[], bool] | None = None):
         self.job_id = job_id
+        self.beat_fn = beat_fn or (lambda: beat(job_id))
         self.interval_s = max(0.2, float(interval_s))
         self.lost = threading.Event()  # set when the job stopped being running
         self._stop = threading.Event()
@@ -99,7 +103,7 @@ class Heartbeat:
     def _run(self) -> None:
         while not self._stop.wait(self.interval_s):
             try:
-                if not beat(self.job_id):
+                if not self.beat_fn():
                     self.lost.set()
                     return
             except Exception:  # a DB blip: the next beat tries again

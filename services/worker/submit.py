@@ -102,7 +102,7 @@ def submit(
     try:
         parsed = parse_spec(spec)
         check_callback(settings, parsed)
-        check_dataset(settings, parsed, pipeline.graphstore_client(settings))
+        check_dataset(settings, parsed, pipeline.graphstore_client(settings), tenant_id)
         path = _audio_path(settings, audio)
         with open(path, "rb") as fh:
             checked = check_audio(UploadFile(fh, filename=filename or path.name), settings, store)

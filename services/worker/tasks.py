@@ -37,6 +37,7 @@ from services.worker import enqueue, logs, pipeline, state
 from services.worker.celery_app import (
     TASK_DELIVER_WEBHOOK,
     TASK_EXPORT_FBX,
+    TASK_IMPORT_LIBRARY,
     TASK_REAP,
     TASK_RUN_JOB,
     TASK_SUBMIT,
@@ -157,6 +158,22 @@ def _requeue_quietly(job_id: str) -> None:
 def run_job(self, job_id: str) -> None:
     """Analyze, search and render job ``job_id``; hand over to the fbx queue or finalize."""
     _run(self, job_id, pipeline.run_job)
+
+
+@app.task(
+    name=TASK_IMPORT_LIBRARY,
+    bind=True,
+    max_retries=MAX_RETRIES,
+    # the sandboxed import's own wall-clock limit, then the graph build
+    soft_time_limit=get_settings().library_sandbox_wall_s + get_settings().job_soft_time_limit_s,
+    time_limit=get_settings().library_sandbox_wall_s + get_settings().job_soft_time_limit_s + 60,
+)
+def import_library(self, row_id: str) -> None:
+    """Import and build one uploaded library version (``services.worker.library_build``),
+    under the failure policy above (its row fails with the error's code)."""
+    from services.worker import library_build
+
+    library_build.run_task(self, int(row_id))
 
 
 @app.task(name=TASK_EXPORT_FBX, bind=True, max_retries=MAX_RETRIES)
