@@ -79,6 +79,24 @@ def _serve(app):
     return f"http://127.0.0.1:{port}", stop
 
 
+def _browse(node: str, app, path: str, shot: Path, switch_s: float) -> dict:
+    """Serve ``app``, drive the page at ``path`` in Chromium (``tests/browser.mjs``); what it saw."""
+    base, stop = _serve(app)
+    try:
+        run = subprocess.run(
+            [node, "tests/browser.mjs", base + path, str(shot), str(switch_s)],
+            cwd=FRONTEND,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "CHROMIUM": CHROMIUM},
+        )
+    finally:
+        stop()
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
 def _moved(a: list[float], b: list[float]) -> float:
     """Largest joint displacement (m) between two poses."""
     return float(np.abs(np.asarray(a) - np.asarray(b)).max())
@@ -97,20 +115,7 @@ def test_preview_page_in_chromium(api, tmp_path_factory):
     shot = artifacts / "preview.png"
     shot.unlink(missing_ok=True)
     t_switch = switch_time(timeline)
-    base, stop = _serve(api.app)
-    try:
-        run = subprocess.run(
-            [node, "tests/browser.mjs", base + preview_url, str(shot), str(t_switch)],
-            cwd=FRONTEND,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            env={**os.environ, "CHROMIUM": CHROMIUM},
-        )
-    finally:
-        stop()
-    assert run.returncode == 0, run.stderr[-3000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    seen = _browse(node, api.app, preview_url, shot, t_switch)
 
     # loads cleanly: no console errors, no page errors, every request answered
     assert seen["error"] is None
@@ -170,20 +175,8 @@ def test_preview_page_switches_to_the_rig_in_chromium(tmp_path_factory, tmp_path
             1
         ]
     (out / "timeline.json").write_text(json.dumps(timeline))
-    base, stop = _serve(create_local_app(out, root / "song.wav"))
-    try:
-        run = subprocess.run(
-            [node, "tests/browser.mjs", base + "/", str(tmp_path / "shot.png"), "1.0"],
-            cwd=FRONTEND,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            env={**os.environ, "CHROMIUM": CHROMIUM},
-        )
-    finally:
-        stop()
-    assert run.returncode == 0, run.stderr[-3000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    app = create_local_app(out, root / "song.wav")
+    seen = _browse(node, app, "/", tmp_path / "shot.png", 1.0)
     assert seen["error"] is None and seen["console_errors"] == [] and seen["page_errors"] == []
     library_joints = pose_track_file(out / "alternatives/0.bvh")["joints"]
     rig_joints = pose_track_file(out / "alternatives/1.rig.bvh", 0.01)["joints"]
@@ -216,21 +209,8 @@ def test_preview_page_shows_the_character_in_chromium(tmp_path_factory, tmp_path
         hook(k, read_bvh(out / f"alternatives/{k}.bvh"), out)
     artifacts = Path(os.environ.get("DANCEGRAPH_TEST_ARTIFACTS", REPO / "test-artifacts"))
     artifacts.mkdir(parents=True, exist_ok=True)
-    shot = artifacts / "preview-rig.png"
-    base, stop = _serve(create_local_app(out, root / "song.wav"))
-    try:
-        run = subprocess.run(
-            [node, "tests/browser.mjs", base + "/", str(shot), "1.0"],
-            cwd=FRONTEND,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            env={**os.environ, "CHROMIUM": CHROMIUM},
-        )
-    finally:
-        stop()
-    assert run.returncode == 0, run.stderr[-3000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    shot = artifacts / "preview-rig.png"  # the character's: preview-rig-character.png
+    seen = _browse(node, create_local_app(out, root / "song.wav"), "/", shot, 1.0)
     assert seen["error"] is None and seen["console_errors"] == [] and seen["page_errors"] == []
     assert seen["failed_requests"] == []
     shown, toggled = seen["character"]["shown"], seen["character"]["toggled"]
