@@ -203,8 +203,15 @@ def render_path(
         )
     seam = ~cuts["continuous"]
     seams = cuts["cuts"][seam]
+    warp = warp_speed(pieces, bar_beats, frames, cuts["cuts"], fps)
     dance, seams, retimed = beat_timing(
-        dance, bar_beats, int(frames[0, 0]), seams, land_stops=land_stops, accent=beat_accent
+        dance,
+        bar_beats,
+        int(frames[0, 0]),
+        seams,
+        land_stops=land_stops,
+        accent=beat_accent,
+        warp_rate=warp,
     )
     report: dict = {
         "retime": retimed,
@@ -261,6 +268,7 @@ def beat_timing(
     *,
     land_stops: bool = STOPS_ON_BEATS,
     accent: float = BEAT_ACCENT,
+    warp_rate: np.ndarray | None = None,
 ) -> tuple[Motion, np.ndarray, dict]:
     """The stitched ``dance`` (song frames from ``start_frame`` on, at ``dance.fps``) re-timed on
     the song's beats ``bar_beats (B, 5)`` s, in one resampling through two steps, each a map
@@ -281,23 +289,28 @@ def beat_timing(
     ``stops_on_beats``, ``accent`` (asked), ``accent_had`` (what the dance had, None when not
     read), ``accent_added`` (the depth applied), ``pulse_depth`` (``{"without", "with"}``: the
     mean joint speed's fold on the song's beats without and with the accent,
-    ``metrics.naturalness``; None without an accent) and ``speed_factor`` (``[min, max]`` of the
-    re-timing's rate, source time per song time, outside ``SEAM_CLEAR_BEATS`` of the seams). A
-    dance on a skeleton without the canonical joints, or with nothing to move, is returned as it
-    is."""
+    ``metrics.naturalness``; None without an accent), ``retime_speed_factor`` (``[min, max]`` of
+    the re-timing's rate, source time per song time, outside ``SEAM_CLEAR_BEATS`` of the seams)
+    and ``speed_factor`` (the same of the whole map from song time to the takes' time: the
+    re-timing's rate times ``warp_rate (N,)``, the stitched dance's own relative rate per frame,
+    ``warp_speed``; the re-timing's alone without it). A dance on a skeleton without the
+    canonical joints, or with nothing to move, is returned as it is."""
     from dancegraph.motion.retime import accent_anchors, beat_map
     from dancegraph.rhythm.motion import motion_rhythm
 
     fps = float(dance.fps)
     frames = np.asarray(frames)
     bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
+    song = (start_frame + np.arange(dance.n_frames)) / fps
+    rate = np.ones(dance.n_frames) if warp_rate is None else np.asarray(warp_rate, dtype=float)
     info: dict[str, Any] = {
         "stops_on_beats": bool(land_stops),
         "accent": float(accent),
         "accent_had": None,
         "accent_added": 0.0,
         "pulse_depth": None,
-        "speed_factor": [1.0, 1.0],
+        "retime_speed_factor": [1.0, 1.0],
+        "speed_factor": speed_factor(np.cumsum(rate) / fps, song, frames / fps, bar_beats),
     }
     if not land_stops and accent <= 0.0:
         return dance, frames, info
@@ -324,7 +337,6 @@ def beat_timing(
         info["accent_had"] = _accent_had(curve, coarse_t, to_dance, bar_beats)
         info["accent_added"] = float(np.clip(accent - info["accent_had"], 0.0, accent))
     depth = info["accent_added"]
-    song = (start_frame + np.arange(dance.n_frames)) / fps
     if not landed and depth == 0.0:
         if accent > 0.0:  # asked, and nothing to add: the dance's own pulse, reported
             info["pulse_depth"] = _pulse_with_accent(coarse, coarse_t, song, song, song, bar_beats)
@@ -341,12 +353,47 @@ def beat_timing(
     warped = sample(dance, source)
     warped.fps = fps
     now = np.interp(frames - start_frame, source, np.arange(dance.n_frames)) + start_frame
-    info["speed_factor"] = speed_factor(source_t, song, now / fps, bar_beats)
+    info["retime_speed_factor"] = speed_factor(source_t, song, now / fps, bar_beats)
+    whole = np.cumsum(np.interp(source_t, song, rate) * np.gradient(source_t, song)) / fps
+    info["speed_factor"] = speed_factor(whole, song, now / fps, bar_beats)
     if accent > 0.0:
         info["pulse_depth"] = _pulse_with_accent(
             coarse, coarse_t, song, landed_song, source_t, bar_beats
         )
     return warped, np.round(now).astype(np.int64), info
+
+
+def warp_speed(
+    pieces: list[tuple[Motion, np.ndarray]],
+    bar_beats: np.ndarray,
+    frames: np.ndarray,
+    cuts: np.ndarray,
+    fps: float,
+) -> np.ndarray:
+    """``(N,)`` the stitched dance's relative rate per output frame (``frames[0, 0]`` on, N the
+    dance's frames): the take's time per song time where the frame shows bar b's node (from the
+    cut ``cuts[b - 1]`` on, ``stitch``'s; ``pieces`` as for ``stitch``), through
+    ``node_warp(beats_b)`` and ``song_phase(bar_beats)``, divided by that bar's mean (the node's
+    bar in its take's time over the music bar's length): 1 where the dance keeps its take's own
+    pace, whatever the tempo it is danced at. Why: the build's accent anchors and uneven song
+    beats re-time the takes within a bar; this says by how much."""
+    from dancegraph.motion.retime import BEAT0, node_warp, song_phase
+
+    song = np.arange(frames[0, 0], frames[-1, 1]) / fps
+    phase = song_phase(bar_beats)(song)
+    dphase = np.gradient(phase, song)
+    owner = np.searchsorted(np.asarray(cuts, dtype=float), song * fps, side="right")
+    out = np.ones(song.size)
+    h = 1e-3
+    for b, (_, beats) in enumerate(pieces):
+        sel = owner == b
+        if not sel.any():
+            continue
+        warp, x = node_warp(beats), phase[sel] - 4 * b
+        frames_per_beat = (warp(x + h) - warp(x - h)) / (2 * h)
+        mean = (beats[BEAT0 + 4] - beats[BEAT0]) / (bar_beats[b, 4] - bar_beats[b, 0])
+        out[sel] = frames_per_beat * dphase[sel] / mean
+    return out
 
 
 #: Beats either side of a seam left out of the re-timing's speed factor (a hand-over's own
@@ -419,6 +466,37 @@ def stage_violation(root_xz: np.ndarray, stage) -> float:
     return float(over.max()) if over.size else 0.0
 
 
+def fbx_exporter(formats: list[str], exporter=None):
+    """``exporter`` where given; else, when ``formats`` asks for FBX, the shared warm Blender
+    exporter (``motion.fbx.shared_exporter``), raising ``FbxError(code="fbx_unavailable")``
+    without Blender; else None. One check for every renderer that writes FBX."""
+    if "fbx" not in formats or exporter is not None:
+        return exporter
+    from dancegraph.motion.fbx import FbxError, fbx_available, shared_exporter
+
+    if not fbx_available():
+        raise FbxError(
+            "FBX output needs Blender (scripts/install-blender.sh); or ask for "
+            'output.formats ["bvh"] only',
+            code="fbx_unavailable",
+            field="spec.output.formats",
+        )
+    return shared_exporter()
+
+
+def song_summary(analysis: MusicAnalysis) -> dict:
+    """The timeline's ``song``: tempo (BPM) and its confidence, meter, the tracker, the grid
+    octave and the analysis's warnings."""
+    return {
+        "tempo_bpm": float(analysis.tempo_bpm),
+        "tempo_confidence": float(analysis.tempo_confidence),
+        "meter": int(analysis.meter),
+        "method": analysis.method,
+        "grid_octave": analysis.grid_octave,
+        "warnings": list(analysis.warnings),
+    }
+
+
 def render(
     graph: MotionGraph,
     analysis: MusicAnalysis,
@@ -449,17 +527,7 @@ def render(
         )
     fps = float(spec.output.fps)
     formats = list(spec.output.formats)
-    if "fbx" in formats and exporter is None:
-        from dancegraph.motion.fbx import FbxError, fbx_available, shared_exporter
-
-        if not fbx_available():
-            raise FbxError(
-                "FBX output needs Blender (scripts/install-blender.sh); or ask for "
-                'output.formats ["bvh"] only',
-                code="fbx_unavailable",
-                field="spec.output.formats",
-            )
-        exporter = shared_exporter()
+    exporter = fbx_exporter(formats, exporter)
     bars = np.asarray(analysis.bars, dtype=float).reshape(-1, 2)
     frames = bar_frames(bars, fps) if len(bars) else np.zeros((0, 2), dtype=np.int64)
     (out / "alternatives").mkdir(parents=True, exist_ok=True)
@@ -533,14 +601,7 @@ def render(
         "fps": fps,
         "duration_s": float(analysis.duration_s),
         "frames": int(round(float(analysis.duration_s) * fps)) if alt_entries else 0,
-        "song": {
-            "tempo_bpm": float(analysis.tempo_bpm),
-            "tempo_confidence": float(analysis.tempo_confidence),
-            "meter": int(analysis.meter),
-            "method": analysis.method,
-            "grid_octave": analysis.grid_octave,
-            "warnings": list(analysis.warnings),
-        },
+        "song": song_summary(analysis),
         "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
         "phrases": to_json_types(list(analysis.phrases)),
         "alternatives": alt_entries,

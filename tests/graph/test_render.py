@@ -224,4 +224,5 @@ def test_stops_on_beats_switch_reaches_the_files(demo_graph, analysis, rendered,
     assert bars[0] == bars[1]
     default = timelines[0]["alternatives"][0]["retime"]
     assert default["accent_added"] == 0.0 and default["pulse_depth"] is None
-    assert default["speed_factor"] == [1.0, 1.0]
+    assert default["retime_speed_factor"] == [1.0, 1.0]
+    assert 0.0 < default["speed_factor"][0] <= default["speed_factor"][1]

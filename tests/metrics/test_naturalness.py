@@ -58,7 +58,10 @@ def _render(salsa_graph, song_bars, **kw):
     g, _, n_bars = salsa_graph
     n = min(n_bars, len(song_bars))
     nodes = [f"t0:{b}" for b in range(n)]
-    dance, _ = render_path(g, nodes, song_bars[:n], FPS, foot_cleanup=False, **kw)
+    dance, report = render_path(g, nodes, song_bars[:n], FPS, foot_cleanup=False, **kw)
+    if not kw.get("land_stops") and not kw.get("beat_accent"):
+        # a steady take's bars on a steady song: the dancer's own pace throughout
+        assert report["retime"]["speed_factor"] == pytest.approx([1.0, 1.0], abs=0.01)
     return dance, song_bars[:n]
 
 
