@@ -118,7 +118,7 @@ def _other_fps(src: Path) -> bytes:
         ("malformed_bvh", "bvh_syntax"),
         ("truncated_bvh", "bvh_truncated"),
         ("malformed_glb", "gltf_invalid"),
-        ("fbx_take", "take_format_unsupported"),
+        ("malformed_fbx", "rig_no_armature"),
         ("under_one_bar", "take_under_one_bar"),
         ("mixed_fps", "fps_mixed"),
         ("non_humanoid", "skeleton_unmapped"),
@@ -137,7 +137,7 @@ def test_a_bad_take_fails_the_import_with_its_named_reason(sqlite_api, demo_dir,
         data = raw[: len(raw) // 2]
     elif case == "malformed_glb":
         bad, data = "zz_bad.glb", b"glTF\x02\x00\x00\x00" + b"\xff" * 64
-    elif case == "fbx_take":
+    elif case == "malformed_fbx":
         bad, data = "zz_bad.fbx", b"Kaydara FBX Binary  \x00\x1a\x00" + b"\x00" * 64
     elif case == "under_one_bar":  # 3 s at a declared 60 BPM: a bar is 4 s
         data = _short_take(demo_dir / TAKES[1], 3.0)
