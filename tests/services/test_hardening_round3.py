@@ -57,6 +57,30 @@ def fill(root: Path, leave_bytes: int) -> Path:
     return ballast
 
 
+def sqlite_store_settings(make_settings, tmp_path: Path, **overrides):
+    """Settings of the embedded default (a migrated SQLite file) with ``overrides`` (the store)."""
+    from services.db import upgrade_schema
+
+    settings = make_settings(f"sqlite:///{tmp_path / 'dg.db'}", **overrides)
+    upgrade_schema(settings.database_url)
+    return settings
+
+
+def demo_job(api, tmp_path: Path, formats: list[str]) -> str:
+    """The id of a queued job: the demo song on the demo library (imported and its graph built
+    into the API's store as the test dataset), one alternative in ``formats``."""
+    from tests.demo import demo_song
+    from tests.services.conftest import TEST_DATASET
+    from tests.services.test_worker_pipeline import _ranged_demo
+
+    _ranged_demo(api.app.state.ctx.store, tmp_path, TEST_DATASET)
+    wav, _ = demo_song(tmp_path)
+    spec = {"dataset": TEST_DATASET, "alternatives": 1, "output": {"formats": formats}}
+    resp = api.submit(wav.read_bytes(), spec)
+    assert resp.status_code == 202, resp.text
+    return resp.json()["id"]
+
+
 def _scratch_files(settings) -> list[str]:
     from services.config import object_store
 
@@ -74,10 +98,51 @@ def test_a_preview_token_with_non_ascii_digits_is_401_not_500(api, token):
     assert resp.json()["code"] == "preview_token_invalid"
 
 
+def asgi_post(app, path: str, headers: list[tuple[bytes, bytes]], body: bytes) -> int:
+    """POST ``body`` to ``app`` as an ASGI server hands it over, ``headers`` byte for byte (an
+    HTTP client would re-encode a non-ASCII value); returns the answer's status."""
+    import anyio
+
+    statuses: list[int] = []
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    async def send(message: dict) -> None:
+        if message["type"] == "http.response.start":
+            statuses.append(message["status"])
+
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": "POST",
+        "scheme": "http",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "root_path": "",
+        "headers": headers,
+        "client": ("127.0.0.1", 50000),
+        "server": ("testserver", 80),
+    }
+    anyio.run(app, scope, receive, send)
+    return statuses[0]
+
+
 def test_a_content_length_of_non_ascii_digits_is_not_a_500(api, song_wav):
     """``'²'.isdigit()`` is True and ``int('²')`` raises: the size pre-check reads ASCII only."""
-    resp = api.submit(song_wav, {}, headers={"Content-Length": b"\xb2"})
-    assert resp.status_code < 500, resp.text
+    import httpx
+
+    upload = httpx.Request(
+        "POST", "http://testserver/v1/jobs", files={"audio": ("a.wav", song_wav)}
+    )
+    headers = [
+        (b"x-api-key", api.key.encode()),
+        (b"content-type", upload.headers["content-type"].encode()),
+        (b"content-length", "²".encode("latin-1")),  # ASGI header bytes are read as latin-1
+    ]
+    assert asgi_post(api.app, "/v1/jobs", headers, upload.read()) == 202
 
 
 # --- 2. a full disk ---------------------------------------------------------------------------
@@ -122,22 +187,12 @@ def run_as_retry(task, job_id: str, retries: int) -> None:
 def test_a_job_stopped_by_a_full_disk_is_retried_later_and_succeeds_once_space_is_freed(
     make_settings, tmp_path, tmpfs
 ):
-    from services.db import upgrade_schema
     from services.worker import tasks
-    from tests.demo import demo_song
-    from tests.services.conftest import TEST_DATASET
-    from tests.services.test_worker_pipeline import _ranged_demo
 
     root = tmpfs("store", "48m")
-    settings = make_settings(f"sqlite:///{tmp_path / 'dg.db'}", store_root=str(root))
-    upgrade_schema(settings.database_url)
+    settings = sqlite_store_settings(make_settings, tmp_path, store_root=str(root))
     with served_api(settings) as api:
-        _ranged_demo(api.app.state.ctx.store, tmp_path, TEST_DATASET)
-        wav, _ = demo_song(tmp_path)
-        spec = {"dataset": TEST_DATASET, "alternatives": 1, "output": {"formats": ["bvh"]}}
-        resp = api.submit(wav.read_bytes(), spec)
-        assert resp.status_code == 202, resp.text
-        job_id = resp.json()["id"]
+        job_id = demo_job(api, tmp_path, ["bvh"])
         ballast = fill(root, 4 * 1024)  # the analysis cannot be cached, nor the result written
 
         # the try after the five quick retries: before, the job failed service_unavailable here
@@ -335,23 +390,13 @@ def test_a_batch_stops_at_its_first_non_audio_part_without_writing_it(api):
 def test_a_result_gone_before_the_fbx_export_fails_the_job_with_a_named_reason(
     request, make_settings, tmp_path, store_kind
 ):
-    from services.db import upgrade_schema
     from services.worker import pipeline, tasks
-    from tests.demo import demo_song
-    from tests.services.conftest import TEST_DATASET
-    from tests.services.test_worker_pipeline import _ranged_demo
 
     extra = {"store_url": request.getfixturevalue("s3_url")} if store_kind == "s3" else {}
-    settings = make_settings(f"sqlite:///{tmp_path / 'dg.db'}", **extra)
-    upgrade_schema(settings.database_url)
+    settings = sqlite_store_settings(make_settings, tmp_path, **extra)
     with served_api(settings) as api:
         store = api.app.state.ctx.store
-        _ranged_demo(store, tmp_path, TEST_DATASET)
-        wav, _ = demo_song(tmp_path)
-        spec = {"dataset": TEST_DATASET, "alternatives": 1, "output": {"formats": ["bvh", "fbx"]}}
-        resp = api.submit(wav.read_bytes(), spec)
-        assert resp.status_code == 202, resp.text
-        job_id = resp.json()["id"]
+        job_id = demo_job(api, tmp_path, ["bvh", "fbx"])
         assert pipeline.run_job(job_id, settings).status == "fbx_queued"
 
         store.delete_prefix(f"jobs/{job_id}")  # an operator empties the bucket's results
