@@ -47,9 +47,11 @@ from dancegraph.render import (
     _music_bar,
     _provenance,
     bar_frames,
+    fbx_exporter,
     follow_plan,
     hold,
     place,
+    song_summary,
     stage_violation,
     to_json_types,
 )
@@ -305,8 +307,10 @@ def render_couple(
     ``out_dir`` as two dancers (module docstring); returns ``{"files", "timeline"}`` as
     ``render.render``. ``on_rig``: per partner (``"lead"``, ``"follow"``) a hook as
     ``render.render``'s (``motion.retarget.RigOutput``), called with ``"<k>/<partner>"``: that
-    dancer is also written on its rig as ``alternatives/<k>/<partner>.rig.<fmt>``. Raises ``DanceGraphError(code="not_a_couple_graph")`` for a solo graph,
-    ``render_empty`` for a result without alternatives."""
+    dancer is also written on its rig as ``alternatives/<k>/<partner>.rig.<fmt>``. Raises
+    ``DanceGraphError(code="not_a_couple_graph")`` for a solo graph, ``render_empty`` for a
+    result without alternatives, ``FbxError(code="fbx_unavailable")`` for FBX without
+    Blender."""
     if not is_couple(graph):
         raise DanceGraphError(
             f"graph {graph.name} is not a couple graph", code="not_a_couple_graph", field="couple"
@@ -321,10 +325,7 @@ def render_couple(
         )
     fps = float(spec.output.fps)
     formats = list(spec.output.formats)
-    if "fbx" in formats and exporter is None:
-        from dancegraph.motion.fbx import shared_exporter
-
-        exporter = shared_exporter()
+    exporter = fbx_exporter(formats, exporter)
     entries, files = [], []
     for k, alt in enumerate(alternatives):
         lead, follow, report = render_couple_path(
@@ -384,14 +385,7 @@ def _couple_timeline(graph, analysis, spec, found, entries, extra) -> dict:
         "fps": float(spec.output.fps),
         "duration_s": float(analysis.duration_s),
         "frames": max(e["frames"] for e in entries),
-        "song": {
-            "tempo_bpm": float(analysis.tempo_bpm),
-            "tempo_confidence": float(analysis.tempo_confidence),
-            "meter": int(analysis.meter),
-            "method": analysis.method,
-            "grid_octave": analysis.grid_octave,
-            "warnings": list(analysis.warnings),
-        },
+        "song": song_summary(analysis),
         "warnings": warnings,
         "bars": [_music_bar(analysis, frames, b) for b in range(len(bars))],
         "phrases": to_json_types(list(analysis.phrases)),
