@@ -1,5 +1,5 @@
 """The service commands of ``dancegraph``: ``serve``, ``worker``, ``reaper``, ``keys``,
-``quickstart``, ``preview``.
+``quickstart``, ``preview``, and ``dataset push`` (a library uploaded to a running service).
 
 They join the one ``dancegraph`` command (``dancegraph.cli``) through the ``dancegraph.commands``
 entry-point group (``pyproject.toml``): the domain package never imports ``services``. Each
@@ -10,7 +10,11 @@ other commands do not pay for them.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import sys
+import time
+from pathlib import Path
 
 from dancegraph.cli import print_json
 
@@ -19,7 +23,7 @@ Subparsers = argparse._SubParsersAction  # what ``ArgumentParser.add_subparsers`
 
 def add_commands(sub: Subparsers) -> None:
     """Register the service commands on the ``dancegraph`` parser's subcommands."""
-    for add in (_add_keys, _add_service, _add_quickstart, _add_preview):
+    for add in (_add_keys, _add_service, _add_quickstart, _add_preview, _add_dataset_push):
         add(sub)
 
 
@@ -128,3 +132,83 @@ def _add_preview(sub: Subparsers) -> None:
         return 0
 
     p.set_defaults(func=run)
+
+
+def _add_dataset_push(sub: Subparsers) -> None:
+    """``dataset push DIR --server URL --key KEY``, beside the domain's ``dataset import``."""
+    dataset = sub.choices.get("dataset")
+    if dataset is None:
+        return
+    ds_sub = next(a for a in dataset._actions if isinstance(a, argparse._SubParsersAction))
+    p = ds_sub.add_parser(
+        "push", help="upload a folder of takes (+ manifest, music) to a running service and wait"
+    )
+    p.add_argument("dir", help="folder with the takes (.bvh/.glb/.fbx), manifest and audio")
+    p.add_argument("--server", required=True, help="the service's base URL, e.g. http://host:8000")
+    p.add_argument("--key", required=True, help="your API key")
+    p.add_argument(
+        "--name", default=None, help="library name (default: the manifest's, else DIR's)"
+    )
+    p.add_argument("--manifest", default=None, help="manifest file (default: DIR/manifest.*)")
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for the build")
+
+    def run(args) -> int:
+        import httpx
+
+        with httpx.Client(base_url=args.server, timeout=600.0) as client:
+            out = push_library(
+                client, args.dir, args.key, name=args.name, manifest=args.manifest,
+                timeout_s=args.timeout,
+            )  # fmt: skip
+        print_json(out)
+        return 0 if out.get("status") == "succeeded" else 1
+
+    p.set_defaults(func=run)
+
+
+def push_library(
+    client,
+    folder: str | os.PathLike,
+    key: str,
+    *,
+    name: str | None = None,
+    manifest: str | os.PathLike | None = None,
+    timeout_s: float = 1800.0,
+    poll_s: float = 1.0,
+) -> dict:
+    """``POST /v1/datasets`` the takes, audio and manifest of ``folder`` through ``client`` (an
+    httpx client on the service), then poll ``GET /v1/datasets/{name}`` until the version is
+    built or failed, printing its stage and percent on stderr; returns the last resource (or
+    ``{"status": "refused", "problem": <problem details>}`` for a refused upload)."""
+    from services.common.libraries import AUDIO_SUFFIXES, TAKE_SUFFIXES
+
+    src = Path(folder)
+    files = sorted(p for p in src.iterdir() if p.is_file())
+    found = [p for p in files if p.name in ("manifest.yaml", "manifest.yml", "manifest.json")]
+    mpath = Path(manifest) if manifest else (found[0] if found else None)
+    if name is None and mpath is not None and mpath.suffix == ".json":
+        name = json.loads(mpath.read_text()).get("name")
+    name = name or src.resolve().name
+    parts: list = [("name", (None, name))]
+    handles = []
+    try:
+        for role, path in [("manifest", mpath)] * (mpath is not None) + [
+            ("takes" if p.suffix.lower() in TAKE_SUFFIXES else "audio", p)
+            for p in files
+            if p.suffix.lower() in TAKE_SUFFIXES + AUDIO_SUFFIXES
+        ]:
+            handles.append(open(path, "rb"))  # noqa: SIM115 - closed below, after the upload
+            parts.append((role, (path.name, handles[-1], "application/octet-stream")))
+        resp = client.post("/v1/datasets", files=parts, headers={"X-API-Key": key})
+    finally:
+        for fh in handles:
+            fh.close()
+    if resp.status_code != 202:
+        return {"status": "refused", "problem": resp.json()}
+    deadline = time.monotonic() + timeout_s
+    body = resp.json()
+    while body["status"] in ("queued", "running") and time.monotonic() < deadline:
+        print(f"{name}: {body['stage']} {body['progress']:.0f} %", file=sys.stderr)
+        time.sleep(poll_s)
+        body = client.get(resp.headers["Location"], headers={"X-API-Key": key}).json()
+    return body

@@ -302,3 +302,17 @@ def test_not_multipart_is_refused(sqlite_api):
         "/v1/datasets", content=b"{}", headers={"Content-Type": "application/json"}
     )
     assert resp.status_code == 415 and resp.json()["code"] == "content_type_unsupported"
+
+
+def test_dataset_push_uploads_a_folder_and_waits_for_the_build(sqlite_api, demo_dir):
+    from services.cli import push_library
+
+    def build_now(row_id: int) -> None:  # the worker, run as soon as the upload is queued
+        library_build.run_import(row_id, sqlite_api.settings)
+
+    sqlite_api.app.state.enqueue_library = build_now
+    out = push_library(sqlite_api.client, demo_dir, sqlite_api.key, name="pushed", poll_s=0.1)
+    assert out["status"] == "succeeded" and out["name"] == "pushed", out
+    assert len(out["takes"]) == len(list(demo_dir.glob("*.bvh"))) and out["nodes"] > 0
+    refused = push_library(sqlite_api.client, demo_dir, sqlite_api.key, name="cmu-salsa")
+    assert refused["status"] == "refused" and refused["problem"]["code"] == "dataset_read_only"
