@@ -196,7 +196,7 @@ def render_couple_path(
     ``cut_beats``, ``drift``, ``stage`` of the centre) with ``foot_skate`` per partner and
     ``placement_jump`` (the largest jump of relative placement blended at a seam: ``m``,
     ``rad``). Raises ``DanceGraphError`` (``render_mismatch``, ``render_empty``,
-    ``unknown_node``, ``render_failed``)."""
+    ``unknown_node``)."""
     from dancegraph.motion.contacts import clean_foot_skate
 
     bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
@@ -206,9 +206,7 @@ def render_couple_path(
     lead_p, follow_p = _pieces(graph, nodes)
     cut = float((graph.manifest.get("seam") or {}).get("cut_beats", CUT_BEATS))
     lead, cuts = stitch(lead_p, bar_beats, frames, fps, cut_beats=cut, partners=[follow_p])
-    follow, cuts_f = stitch(follow_p, bar_beats, frames, fps, cut_beats=cut, partners=[lead_p])
-    if not np.array_equal(cuts["cuts"], cuts_f["cuts"]):
-        raise DanceGraphError("the partners were cut at different frames", code="render_failed")
+    follow, _ = stitch(follow_p, bar_beats, frames, fps, cut_beats=cut, cut_at=cuts)
     seam = ~cuts["continuous"]
     first = int(frames[0, 0])
     rel, at_cut = _source_placement(lead_p, follow_p, bar_beats, frames, fps, cuts["cuts"])

@@ -312,6 +312,7 @@ def stitch(
     cut_beats: float = CUT_BEATS,
     blend: bool = True,
     partners: Sequence[Sequence[tuple[Motion, np.ndarray]]] = (),
+    cut_at: dict | None = None,
 ) -> tuple[Motion, dict]:
     """The dance of bars laid on the song: one node per music bar, cut where they match best.
 
@@ -326,7 +327,9 @@ def stitch(
     b's node is the next bar of bar b-1's take) the take simply continues: the cut stays on the
     line, nothing is blended, and it is no seam. ``partners``: the pieces of other dancers on
     the same beats (a couple's other partner) whose seam distances are added to the choice, so
-    every dancer stitched with the others as partners is cut at the same frames.
+    every dancer stitched with the others as partners is cut at the same frames; ``cut_at``:
+    the report of such a stitch, whose ``cuts``, ``distance`` and ``continuous`` are taken
+    instead of choosing again (the couple's second dancer).
 
     Returns the motion of frames ``[frames[0, 0], frames[-1, 1])`` at ``fps`` and a report:
     ``cuts`` (B-1,) output frame where each later bar's node takes over, ``cut_beats`` (B-1,)
@@ -354,9 +357,12 @@ def stitch(
     def source(b: int, k: np.ndarray) -> np.ndarray:
         return warps[b](u[np.asarray(k) - first] - 4.0 * b)
 
-    cuts, distance, flow = _choose_cuts(
-        [pieces, *partners], frames, fps, lambda k: u[k - first], source, cut_beats
-    )
+    if cut_at is None:
+        cuts, distance, flow = _choose_cuts(
+            [pieces, *partners], frames, fps, lambda k: u[k - first], source, cut_beats
+        )
+    else:
+        cuts, distance, flow = cut_at["cuts"], cut_at["distance"], cut_at["continuous"]
     bounds = np.concatenate([[frames[0, 0]], cuts, [frames[-1, 1]]])
     # each bar's source frames over its segment [bounds[b], bounds[b+1]) and one frame either
     # side: the three frames about each of its cuts

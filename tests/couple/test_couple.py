@@ -190,3 +190,28 @@ def test_no_couple_graph_is_named(couple, tmp_path):
     with pytest.raises(NotFoundError) as err:
         open_couple_graph(store, "salsa6")
     assert err.value.code == "couple_graph_missing"
+
+
+def test_partners_are_cut_where_both_match(couple):
+    """The cut of a couple's hand-over is chosen on both partners' seam distances: the lead
+    stitched with the follow as partner and the follow with the lead are cut alike, and the
+    partner's distance changes the choice against the lead alone somewhere on a long path."""
+    from dancegraph.motion.stitch import stitch
+    from dancegraph.render import bar_frames
+
+    graph = couple[3]
+    rng = np.random.default_rng(3)
+    nodes = [int(i) for i in rng.choice(graph.n_nodes, 24, replace=False)]
+    lead = [graph.node_frames(i) for i in nodes]
+    follow = [follow_frames(graph, i) for i in nodes]
+    beat = 0.36 + 0.02 * rng.random(24 * 4)
+    times = np.concatenate([[0.5], 0.5 + np.cumsum(beat)])
+    bars = np.stack([times[4 * b : 4 * b + 5] for b in range(24)])
+    frames = bar_frames(bars[:, [0, 4]], 30.0)
+    _, both = stitch(lead, bars, frames, 30.0, partners=[follow])
+    _, other = stitch(follow, bars, frames, 30.0, partners=[lead])
+    _, alone = stitch(lead, bars, frames, 30.0)
+    assert np.array_equal(both["cuts"], other["cuts"])
+    assert not np.array_equal(both["cuts"], alone["cuts"])
+    _, reused = stitch(follow, bars, frames, 30.0, cut_at=both)
+    assert np.array_equal(reused["cuts"], both["cuts"])
