@@ -385,7 +385,7 @@ def _add_convert(sub) -> None:
     def run(args) -> None:
         from dancegraph.motion.fbx import bvh_to_fbx
 
-        summary = bvh_to_fbx(args.input, args.output, fps=args.fps, scale=args.scale, validate=True)
+        summary = bvh_to_fbx(args.input, args.output, fps=args.fps, scale=args.scale)
         print_json({"output": args.output, **summary})
 
     p.set_defaults(func=run)

@@ -1,8 +1,10 @@
 """FBX export through Blender, run as a separate process (Blender is GPL; ``bpy`` pins numpy<2).
 
 DanceGraph never imports ``bpy``. A child process runs ``blender_worker.py`` under the Python of
-Blender's own virtual environment and converts BVH files to FBX on request (a JSON-lines protocol
-on its stdin/stdout, see that script). :class:`FbxExporter` keeps one such child warm and reuses it
+Blender's own virtual environment and writes FBX files on request (a JSON-lines protocol on its
+stdin/stdout, see that script): a rig file posed by a dance whose joint rotations DanceGraph
+computed, keyed in bulk. A BVH is converted the same way: DanceGraph's reader reads it, its rest
+pose (one frame) is the rig, its frames the dance. :class:`FbxExporter` keeps one such child warm and reuses it
 for every file, because starting Blender costs seconds while a short clip converts in a fraction
 of one. :func:`bvh_to_fbx` uses one shared exporter per process.
 
@@ -23,17 +25,24 @@ import json
 import os
 import queue
 import subprocess
+import tempfile
 import threading
 import time
 import weakref
 from pathlib import Path
 
+import numpy as np
+
 from dancegraph.errors import DanceGraphError, MotionFileError
+from dancegraph.motion.bvh import read_bvh, write_bvh
+from dancegraph.motion.fk import forward_kinematics
+from dancegraph.motion.skeleton import Motion
 from dancegraph.paths import REPO_ROOT
 
 WORKER_SCRIPT = Path(__file__).with_name("blender_worker.py")
 DEFAULT_START_TIMEOUT_S = 180.0  # a cold Blender import takes 2-5 s; a loaded machine much more
 DEFAULT_CONVERT_TIMEOUT_S = 600.0  # a 15-minute song at 60 fps is about 54k frames
+FPS_SNAP_TOLERANCE = 1e-3  # relative
 DEFAULT_MAX_JOBS = 100  # files per Blender child before a fresh one (Blender's memory grows)
 
 
@@ -42,6 +51,15 @@ class FbxError(DanceGraphError):
 
     code = "fbx_export_failed"
     status = 500
+
+
+def snap_fps(fps: float) -> float:
+    """A rate within 0.1 % of a whole number becomes that number (a BVH ``Frame Time`` printed
+    to 6 decimals, 0.033333, reads as 30.0003 fps); 29.97 stays 29.97."""
+    nearest = round(fps)
+    if nearest > 0 and abs(fps - nearest) <= FPS_SNAP_TOLERANCE * nearest:
+        return float(nearest)
+    return fps
 
 
 def blender_python() -> Path:
@@ -214,7 +232,7 @@ class FbxExporter:
                 continue  # not a protocol line; the worker only writes JSON there
 
     def _request(self, payload: dict, timeout_s: float) -> dict:
-        counted = payload.get("op") in ("convert", "animate_rig")
+        counted = payload.get("op") == "animate_rig"
         if counted and self._jobs >= self.max_jobs:
             self._stop_locked()  # a fresh child for the next max_jobs files
         self._ensure_started()
@@ -268,14 +286,25 @@ class FbxExporter:
             raise FbxError(
                 f"cannot create the folder of {fbx_path}: {exc}", field=str(fbx_path)
             ) from exc
-        payload = {"op": "convert", "bvh": str(bvh), "fbx": str(fbx), "fps": fps, "scale": scale}
-        with self._lock:
-            reply = self._request(payload, self.convert_timeout_s)
-        if not reply.get("ok"):
-            raise FbxError(
-                f"FBX export of {bvh_path} failed: {reply.get('error')}", field=str(bvh_path)
-            )
-        return {k: reply[k] for k in ("frames", "fps", "joints", "seconds") if k in reply}
+        summary = self._convert(bvh, fbx, fps, scale)
+        return {k: summary[k] for k in ("frames", "fps", "joints", "seconds")}
+
+    def _convert(self, bvh: Path, fbx: Path, fps: float | None, scale: float) -> dict:
+        """The BVH read by DanceGraph's reader, its rest pose (one frame) as the rig Blender
+        imports, the dance keyed on it in bulk (:meth:`animate_rig`)."""
+        motion = read_bvh(bvh, scale=scale)  # a broken file: its precise MotionFileError
+        rate = float(fps) if fps else snap_fps(motion.fps)
+        sk = motion.skeleton
+        still = np.zeros((1, sk.n_joints, 4))
+        still[..., 3] = 1.0
+        positions, g = forward_kinematics(motion)
+        with tempfile.TemporaryDirectory(prefix="dg-fbx-") as tmp:
+            rest = Path(tmp) / bvh.name  # the armature keeps the file's name
+            write_bvh(Motion(sk, rate, sk.offsets[:1].copy(), still), rest)
+            anim = Path(tmp) / "anim.npz"
+            names = np.array(sk.names, dtype=str)
+            np.savez(anim, names=names, g=g, positions=positions, fps=rate, unit_scale=1.0)
+            return self.animate_rig(rest, anim, fbx)
 
     def animate_rig(
         self, rig_path: str | os.PathLike, anim_path: str | os.PathLike, fbx_path: str | os.PathLike
@@ -344,18 +373,13 @@ def bvh_to_fbx(
     fps: float | None = None,
     scale: float = 1.0,
     exporter: FbxExporter | None = None,
-    validate: bool = False,
 ) -> dict:
     """Write ``fbx_path`` from ``bvh_path`` (units: ``scale`` × file units = metres).
 
-    Uses ``exporter`` or the shared warm one. ``validate`` first reads the file with DanceGraph's
-    own BVH reader, so a user's broken file gets its precise error (code, file and line) instead
-    of Blender's. Raises FbxError (``fbx_export_failed`` / ``fbx_unavailable``) or MotionFileError.
+    Uses ``exporter`` or the shared warm one. The file is read by DanceGraph's own BVH reader,
+    so a user's broken file gets its precise error (code, file and line). Raises FbxError
+    (``fbx_export_failed`` / ``fbx_unavailable``) or MotionFileError.
     """
     if Path(fbx_path).suffix.lower() != ".fbx":
         raise FbxError(f"the output must be a .fbx file, got {fbx_path}", field=str(fbx_path))
-    if validate:
-        from dancegraph.motion.bvh import read_bvh
-
-        read_bvh(bvh_path, scale=scale, fps=fps)
     return (exporter or shared_exporter()).convert(bvh_path, fbx_path, fps=fps, scale=scale)
