@@ -702,40 +702,45 @@ def _write(motion: Motion, rig: Rig, rig_path: Path, out: Path, suffix: str, exp
             unit_scale=np.float64(rig.unit_scale),
         )
         summary = (exporter or shared_exporter()).animate_rig(rig_path, anim, out)
-    heads = summary.pop("first_frame")
-    return summary, np.array([heads[n] for n in motion.skeleton.names])
+    heads = summary.pop("first_frame")  # a bone Blender renamed is missing: NaN
+    return summary, np.array([heads.get(n, [np.nan] * 3) for n in motion.skeleton.names])
 
 
 def check_placement(rig: Rig, motion: Motion, written: np.ndarray) -> dict:
     """The written file's first frame against the dance's, in world space (metres).
 
-    ``written``: ``(J, 3)`` world joint positions read back from the file, skeleton order.
+    ``written``: ``(J, 3)`` world joint positions read back from the file, skeleton order (NaN
+    rows: joints the file does not name; the others are compared).
     Returns ``height_m`` (the written joints' extent along the rig's world up), ``rig_height_m``
     (the rig's own bind-pose height), ``height_ratio`` (written / dance), ``up_error_deg`` (the
     hips-to-head direction, written against dance), ``floor_offset_m`` (lowest written joint
     less the dance's) and ``upright`` (the written character's up within 30° of world +Y).
     Raises ``RigError``: ``rig_output_scale`` (height off by more than 10 %),
-    ``rig_output_not_upright``, ``rig_output_floor`` (more than 5 % of the height off the floor).
+    ``rig_output_not_upright``, ``rig_output_floor`` (more than 5 % of the height off the floor),
+    ``rig_output_unreadable`` (fewer than two of the rig's joints found in the file).
     """
     from dancegraph.motion.rig import RigError
 
-    expected, _ = forward_kinematics(motion.slice(0, 1))
-    expected = expected[0]
+    expected = forward_kinematics(motion.slice(0, 1))[0][0]
+    seen = np.isfinite(written).all(axis=1)
+    if seen.sum() < 2:
+        raise RigError(
+            "the written file names (almost) none of the rig's joints",
+            code="rig_output_unreadable",
+            field="joints",
+        )
     up = quat.rotate(quat.conjugate(rig.to_canonical), np.array([0.0, 1.0, 0.0]))
-    h_exp, h_got = float(np.ptp(expected @ up)), float(np.ptp(written @ up))
+    h_exp, h_got = float(np.ptp(expected[seen] @ up)), float(np.ptp(written[seen] @ up))
     hips = rig.joint("hips")
-    top = next(
-        rig.joint(r)
-        for r in ("head", "neck", "upper_chest", "chest", "spine")
-        if rig.joint(r) is not None
-    )
-    figure = written[top] - written[hips]
+    tops = (j for j in map(rig.joint, ("head", "neck", "chest", "spine")) if j is not None)
+    top = next((j for j in tops if seen[j]), hips)  # the spine's highest joint the file names
+    figure = written[top] - written[hips] if top != hips else np.full(3, np.nan)  # NaN: unchecked
     out = {
         "height_m": round(h_got, 4),
         "rig_height_m": round(rig.height(), 4),
         "height_ratio": round(h_got / h_exp, 4) if h_exp > 0 else float("inf"),
         "up_error_deg": round(float(_angle(figure, expected[top] - expected[hips])), 3),
-        "floor_offset_m": round(float((written @ up).min() - (expected @ up).min()), 5),
+        "floor_offset_m": round(float((written[seen] @ up).min() - (expected[seen] @ up).min()), 5),
         "upright": bool(_angle(figure, np.array([0.0, 1.0, 0.0])) <= UPRIGHT_TOLERANCE_DEG),
     }
     if not abs(out["height_ratio"] - 1.0) <= HEIGHT_TOLERANCE:
@@ -745,7 +750,7 @@ def check_placement(rig: Rig, motion: Motion, written: np.ndarray) -> dict:
             code="rig_output_scale",
             field="height_m",
         )
-    if not out["up_error_deg"] <= UPRIGHT_TOLERANCE_DEG:
+    if out["up_error_deg"] > UPRIGHT_TOLERANCE_DEG:
         raise RigError(
             f"the written character is turned {out['up_error_deg']:g} degrees from upright",
             code="rig_output_not_upright",

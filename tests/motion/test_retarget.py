@@ -496,6 +496,10 @@ def test_a_misplaced_output_is_an_error(rig_dir, salsa_clip, tmp_path):
     motion, _ = retarget(salsa_clip.slice(0, 30), rig)
     first = forward_kinematics(motion.slice(0, 1))[0][0]
     assert check_placement(rig, motion, first)["height_ratio"] == pytest.approx(1.0)
+    partly = first.copy()
+    partly[rig.joint("head")] = np.nan  # a joint the file does not name is left out
+    placed = check_placement(rig, motion, partly)
+    assert placed["height_ratio"] == pytest.approx(1.0) and placed["up_error_deg"] < 1.0
     with pytest.raises(RigError) as err:
         check_placement(rig, motion, first * 100.0)  # centimetres taken for metres
     assert err.value.code == "rig_output_scale"
