@@ -11,6 +11,9 @@ the readers once, so a call costs a fork, not an interpreter start) and
   raised (same class, code, field and message), or raises :class:`SandboxError` with a ``code``:
   ``crashed`` (a signal, or an unexpected exception), ``timeout``, ``memory``, ``cpu``.
 
+A call made inside a sandboxed child (a reader that sandboxes its own parse, called from a
+sandboxed parse) runs inline, under the child's limits.
+
 The calling thread never blocks longer than the wall-clock limit (plus a fork); a crashing
 child cannot harm the parent, which shares no memory, threads or sockets with it. At most
 :data:`MAX_CHILDREN` children run at once per process, so concurrent hostile uploads cannot
@@ -21,6 +24,7 @@ a free slot ends with ``timeout``.
 from __future__ import annotations
 
 import importlib
+import io
 import multiprocessing
 import os
 import resource
@@ -29,6 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing import context, forkserver, popen_forkserver, reduction, spawn, util
 from multiprocessing.connection import Connection, wait
 from typing import Any, TypeVar
 
@@ -50,8 +55,56 @@ PRELOAD = (
 MAX_CHILDREN = max(2, os.cpu_count() or 2)
 
 _slots = threading.BoundedSemaphore(MAX_CHILDREN)
+_inside = False  # True in a sandboxed child: a nested call runs inline, under its limits
 _context_lock = threading.Lock()
 _context: Any = None
+_context_pid = 0  # the process whose fork server is up
+#: Longest wait for the fork server to start and import :data:`PRELOAD`.
+STARTUP_S = 120.0
+
+
+def _forget_fork_server() -> None:
+    """In a child ``os.fork``-ed from a process that started the fork server (a Celery pool
+    worker): forget that server (the stdlib would ``waitpid`` on a process that is not its
+    child); the child starts its own on its first call."""
+    server: Any = forkserver._forkserver  # type: ignore[attr-defined]  # the stdlib's singleton
+    if server._forkserver_alive_fd is not None:
+        try:
+            os.close(server._forkserver_alive_fd)
+        except OSError:
+            pass
+    server._forkserver_address = None
+    server._forkserver_alive_fd = None
+    server._forkserver_pid = None
+    server._lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_fork_server)
+
+
+class _Popen(popen_forkserver.Popen):
+    """The stdlib's forkserver launch (Python 3.11) with a fresh authkey of the stdlib's type
+    for the child: a Celery (billiard) pool worker's own key is billiard's type, which refuses
+    to be pickled for a multiprocessing child. Used directly, not through ``Process.start``,
+    which refuses children to a daemonic process (a pool worker is one)."""
+
+    def _launch(self, process_obj):
+        process_obj.authkey = os.urandom(32)
+        prep_data = spawn.get_preparation_data(process_obj._name)
+        prep_data["authkey"] = process_obj.authkey
+        buf = io.BytesIO()
+        context.set_spawning_popen(self)
+        try:
+            reduction.dump(prep_data, buf)
+            reduction.dump(process_obj, buf)
+        finally:
+            context.set_spawning_popen(None)
+        self.sentinel, w = forkserver.connect_to_new_process(self._fds)
+        _parent_w = os.dup(w)
+        self.finalizer = util.Finalize(self, util.close_fds, (_parent_w, self.sentinel))
+        with open(w, "wb", closefd=True) as f:
+            f.write(buf.getbuffer())
+        self.pid = forkserver.read_signed(self.sentinel)
 
 
 @dataclass(frozen=True)
@@ -71,14 +124,22 @@ class SandboxError(DanceGraphError):
     status = 422
 
 
+def _ready() -> None:
+    """A child's first call in a process: proves the fork server has loaded :data:`PRELOAD`."""
+
+
 def _ctx():
-    """The forkserver context, its server told to preload :data:`PRELOAD` (created once)."""
-    global _context
+    """The forkserver context, its server started and its :data:`PRELOAD` imported (once per
+    process, before any call's wall clock starts: the start is not the file's time)."""
+    global _context, _context_pid
     with _context_lock:
         if _context is None:
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(list(PRELOAD))
-            _context = ctx
+            _context = multiprocessing.get_context("forkserver")
+            _context.set_forkserver_preload(list(PRELOAD))
+        if _context_pid != os.getpid():
+            start = SandboxLimits(wall_seconds=STARTUP_S, cpu_seconds=STARTUP_S)
+            _run(_context, _ready, (), {}, start, time.monotonic() + STARTUP_S)
+            _context_pid = os.getpid()
         return _context
 
 
@@ -104,6 +165,8 @@ def _rebuild(module: str, name: str, state: dict) -> DanceGraphError:
 
 def _child(conn: Connection, limits: SandboxLimits, fn: Callable, args, kwargs) -> None:
     """The child's body: own process group, limits, the call, one message back."""
+    global _inside
+    _inside = True
     os.setpgid(0, 0)
     resource.setrlimit(resource.RLIMIT_AS, (limits.memory_bytes, limits.memory_bytes))
     cpu = max(1, int(limits.cpu_seconds + 0.999))
@@ -161,21 +224,23 @@ def run_sandboxed(
 
     ``fn`` must be a module-level function; arguments and result must pickle (pass paths, not
     open files). Raises the ``DanceGraphError`` ``fn`` raised, or :class:`SandboxError`.
+    Inside a sandboxed child ``fn`` runs inline, under that child's limits.
     """
+    if _inside:
+        return fn(*args, **kwargs)
+    ctx = _ctx()
     deadline = time.monotonic() + limits.wall_seconds
     if not _slots.acquire(timeout=limits.wall_seconds):
         raise _error("timeout", limits)
     try:
-        return _run(fn, args, kwargs, limits, deadline)
+        return _run(ctx, fn, args, kwargs, limits, deadline)
     finally:
         _slots.release()
 
 
-def _run(fn: Callable, args, kwargs, limits: SandboxLimits, deadline: float):
-    ctx = _ctx()
+def _run(ctx, fn: Callable, args, kwargs, limits: SandboxLimits, deadline: float):
     recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, limits, fn, args, kwargs), daemon=True)
-    proc.start()
+    child = _Popen(ctx.Process(target=_child, args=(send, limits, fn, args, kwargs)))
     send.close()
     message, timed_out = None, False
     try:
@@ -190,12 +255,11 @@ def _run(fn: Callable, args, kwargs, limits: SandboxLimits, deadline: float):
     finally:
         recv.close()
         if message is not None:  # a child stuck on its way out is killed too
-            proc.join(timeout=max(1.0, deadline - time.monotonic()))
-        if proc.exitcode is None:
-            _kill_group(proc)
-        proc.join()
-        exitcode = proc.exitcode
-        proc.close()
+            child.wait(timeout=max(1.0, deadline - time.monotonic()))
+        if child.poll() is None:
+            _kill_group(child)
+        exitcode = child.wait()
+        child.close()
     if message is None:
         raise _error("timeout" if timed_out else _exit_code(exitcode), limits)
     kind, value = message

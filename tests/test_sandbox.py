@@ -113,6 +113,29 @@ def test_library_errors_come_back_as_themselves():
     assert str(motion.value) == "take.bvh:7: bad frame"
 
 
+def _in_a_daemon(conn) -> None:
+    try:
+        conn.send(run_sandboxed(_add, 20, b=22, limits=SHORT)["sum"])
+    except BaseException as exc:  # noqa: BLE001 - reported to the test
+        conn.send(repr(exc))
+
+
+def test_works_in_a_celery_pool_worker():
+    """A Celery pool worker (billiard's daemonic process, forked after this one started its
+    fork server) can still sandbox: its own server, no 'daemonic processes' refusal, its
+    billiard authkey not in the way."""
+    import billiard
+
+    run_sandboxed(_add, 1, limits=SHORT)  # this process's fork server is up
+    ctx = billiard.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    worker = ctx.Process(target=_in_a_daemon, args=(send,), daemon=True)
+    worker.start()
+    assert recv.poll(60), "the daemonic worker did not answer"
+    assert recv.recv() == 42
+    worker.join(10)
+
+
 def test_an_unexpected_exception_is_a_crash_without_its_text():
     with pytest.raises(SandboxError) as info:
         run_sandboxed(_bug, limits=SHORT)

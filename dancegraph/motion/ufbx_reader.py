@@ -1,9 +1,10 @@
-"""Read an FBX rig with ufbx in a child process: joints, bind pose and skinned mesh.
+"""Read an FBX rig with ufbx in a sandboxed child process: joints, bind pose and skinned mesh.
 
-The ufbx Python binding (0.0.5) can crash on temporary objects, so the parent never imports it:
-:func:`read_fbx_rig` runs ``python -m dancegraph.motion.ufbx_reader IN.fbx OUT.npz`` and reads
-the arrays back; a crash or a broken file becomes ``RigError`` (``rig_unreadable``). ufbx
-converts the file to metres, Y up, right-handed.
+The ufbx Python binding (0.0.5) can crash on temporary objects, so the caller never imports it:
+:func:`read_fbx_rig` runs the reader in a ``dancegraph.sandbox`` child (inline when the caller
+already is one, as a rig upload's parse is) and gets its arrays back; a crash, a limit or a
+broken file becomes ``RigError`` (``rig_unreadable``). ufbx converts the file to metres, Y up,
+right-handed.
 
 Joints are the file's bone nodes (``LimbNode``) and every node a skin cluster binds to. A joint's
 bind matrix is its skin cluster's bind matrix where it has one, else its parent joint's bind
@@ -15,15 +16,18 @@ weights renormalised.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-READ_TIMEOUT_S = 120.0
+from dancegraph.sandbox import SandboxError, SandboxLimits, run_sandboxed
+
+#: The reader's own limits when it is not already inside a sandboxed parse.
+READ_LIMITS = SandboxLimits(memory_bytes=4 * 1024**3, cpu_seconds=120.0, wall_seconds=120.0)
+
+# Every ufbx object a child took: the binding crashes when a scene is freed before the objects
+# taken from it, so nothing here is freed before the child exits (it never runs a finaliser).
+_ALIVE: list = []
 
 
 def read_fbx_rig(path: str | Path):
@@ -33,46 +37,46 @@ def read_fbx_rig(path: str | Path):
     from dancegraph.motion.rig import RigError, RigMesh
 
     path = Path(path)
-    with tempfile.TemporaryDirectory(prefix="dg-ufbx-") as tmp:
-        out = Path(tmp) / "rig.npz"
-        try:
-            proc = subprocess.run(
-                [sys.executable, "-m", "dancegraph.motion.ufbx_reader", str(path), str(out)],
-                capture_output=True,
-                text=True,
-                timeout=READ_TIMEOUT_S,
-            )
-        except subprocess.TimeoutExpired:
-            raise RigError(
-                f"{path.name}: reading the FBX took longer than {READ_TIMEOUT_S:g} s",
-                code="rig_unreadable",
-                field=path.name,
-            ) from None
-        if proc.returncode != 0 or not out.is_file():
-            tail = (proc.stderr.strip().splitlines() or ["no message"])[-1]
-            raise RigError(
-                f"{path.name}: not a readable FBX file ({tail[:200]})",
-                code="rig_unreadable",
-                field=path.name,
-            )
-        data = np.load(out, allow_pickle=False)
-        names = [str(n) for n in data["names"]]
-        mesh = None
-        if "mesh_positions" in data and len(data["mesh_positions"]):
-            mesh = RigMesh(
-                positions=data["mesh_positions"],
-                triangles=data["mesh_triangles"],
-                joints=data["mesh_joints"],
-                weights=data["mesh_weights"],
-                normals=None,
-            )
-        ancestors: dict[str, list] = {}
-        if "anc_joint" in data:
-            for joint, name, local in zip(
-                data["anc_joint"], data["anc_name"], data["anc_local"], strict=True
-            ):
-                ancestors.setdefault(str(joint), []).append((str(name), local))
-        return names, data["parents"], data["bind"], mesh, ancestors
+    try:
+        data = run_sandboxed(_read_arrays, str(path), limits=READ_LIMITS)
+    except SandboxError as exc:
+        raise RigError(
+            f"{path.name}: not a readable FBX file ({exc.message})",
+            code="rig_unreadable",
+            field=path.name,
+        ) from None
+    names = [str(n) for n in data["names"]]
+    mesh = None
+    if "mesh_positions" in data and len(data["mesh_positions"]):
+        mesh = RigMesh(
+            positions=data["mesh_positions"],
+            triangles=data["mesh_triangles"],
+            joints=data["mesh_joints"],
+            weights=data["mesh_weights"],
+            normals=None,
+        )
+    ancestors: dict[str, list] = {}
+    if "anc_joint" in data:
+        for joint, name, local in zip(
+            data["anc_joint"], data["anc_name"], data["anc_local"], strict=True
+        ):
+            ancestors.setdefault(str(joint), []).append((str(name), local))
+    return names, data["parents"], data["bind"], mesh, ancestors
+
+
+def _read_arrays(path: str) -> dict[str, np.ndarray]:  # pragma: no cover - in the child
+    """The rig's arrays (:func:`_read`); ufbx's own failure as ``RigError`` naming the file
+    only."""
+    from dancegraph.motion.rig import RigError
+
+    name = Path(path).name
+    try:
+        return _read(path, _ALIVE)
+    except Exception as exc:  # noqa: BLE001 - ufbx raises its own error types
+        why = str(exc).replace(path, name).replace(str(Path(path).parent), "")[:200]
+        raise RigError(
+            f"{name}: not a readable FBX file ({why})", code="rig_unreadable", field=name
+        ) from None
 
 
 def _matrix(m) -> np.ndarray:
@@ -84,7 +88,7 @@ def _matrix(m) -> np.ndarray:
 
 def _read(path: str, keep: list) -> dict[str, np.ndarray]:  # pragma: no cover - in the child
     """The rig's arrays. Every ufbx object is appended to ``keep``: the binding crashes when a
-    scene is freed before the objects taken from it, so nothing is freed before ``os._exit``."""
+    scene is freed before the objects taken from it, so nothing is freed before the child exits."""
     import ufbx
 
     scene = ufbx.load_file(
@@ -219,14 +223,3 @@ def _ancestors(joints: list, parents: list[int], keep: list) -> dict[str, np.nda
         "anc_name": np.array([r[1] for r in rows], dtype=str),
         "anc_local": np.array([r[2] for r in rows], dtype=float).reshape(-1, 4, 4),
     }
-
-
-if __name__ == "__main__":  # pragma: no cover - the child process
-    alive: list = []
-    arrays = _read(sys.argv[1], alive)
-    tmp = sys.argv[2] + ".tmp.npz"
-    np.savez(tmp, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle first
-    Path(tmp).replace(sys.argv[2])
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)  # the binding can crash while its objects are garbage-collected at exit
