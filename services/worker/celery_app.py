@@ -30,12 +30,14 @@ TASK_DELIVER_WEBHOOK = "dancegraph.deliver_webhook"
 TASK_SUBMIT = "dancegraph.submit"
 TASK_REAP = "dancegraph.reap"
 TASK_IMPORT_LIBRARY = "dancegraph.import_library"
+TASK_IMPORT_LIBRARY = "dancegraph.import_library"
 
 TASK_QUEUES = {
     TASK_RUN_JOB: QUEUE_ANALYSIS,
     TASK_SUBMIT: QUEUE_ANALYSIS,
     TASK_DELIVER_WEBHOOK: QUEUE_ANALYSIS,
     TASK_REAP: QUEUE_ANALYSIS,
+    TASK_IMPORT_LIBRARY: QUEUE_ANALYSIS,
     TASK_IMPORT_LIBRARY: QUEUE_ANALYSIS,
     TASK_EXPORT_FBX: QUEUE_FBX,
 }
@@ -151,6 +153,14 @@ def _after_fork(**_kwargs) -> None:
     from services import db
 
     db.reset_caches()
+    # billiard leaves its own authkey type on multiprocessing's current process, which
+    # multiprocessing refuses to pickle: the sandbox's forkserver children (dancegraph.sandbox,
+    # e.g. a library import) could not start from a pool child.
+    import multiprocessing.process as mp_process
+
+    me = mp_process.current_process()
+    if not isinstance(me.authkey, mp_process.AuthenticationString):
+        me._config["authkey"] = mp_process.AuthenticationString(bytes(me.authkey))
     logging.getLogger("dancegraph.worker").info("worker process ready", extra={"pid": os.getpid()})
 
 

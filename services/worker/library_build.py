@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import tarfile
 import zipfile
@@ -112,6 +113,7 @@ def run_import(row_id: int, settings: Settings | None = None) -> str:
     progress = scratch / PROGRESS_FILE
 
     def beat() -> bool:
+        os.utime(scratch)  # in use: the reaper's scratch sweep keeps it
         stage, percent = _read_progress(progress)
         with session_scope() as session:
             return libraries.beat(session, row_id, worker, stage, percent)
