@@ -18,7 +18,7 @@ The calling thread never blocks longer than the wall-clock limit (plus a fork); 
 child cannot harm the parent, which shares no memory, threads or sockets with it. At most
 :data:`MAX_CHILDREN` children run at once per process, so concurrent hostile uploads cannot
 multiply the memory limit without bound; a call that waits longer than its wall-clock limit for
-a free slot ends with ``timeout``.
+a free slot ends with ``busy`` (the server's state, not the file's: HTTP 503).
 """
 
 from __future__ import annotations
@@ -118,10 +118,15 @@ class SandboxLimits:
 
 class SandboxError(DanceGraphError):
     """The sandboxed call did not finish: ``code`` is ``crashed``, ``timeout``, ``memory`` or
-    ``cpu``; the message names the limit, never a path."""
+    ``cpu`` (the file's doing: 422), or ``busy`` (no free slot: 503); the message names the
+    limit, never a path."""
 
     code = "crashed"
     status = 422
+
+    def __init__(self, message: str, *, code: str):
+        super().__init__(message, code=code)
+        self.status = 503 if code == "busy" else 422
 
 
 def _ready() -> None:
@@ -231,7 +236,10 @@ def run_sandboxed(
     ctx = _ctx()
     deadline = time.monotonic() + limits.wall_seconds
     if not _slots.acquire(timeout=limits.wall_seconds):
-        raise _error("timeout", limits)
+        raise SandboxError(
+            f"all {MAX_CHILDREN} sandbox slots stayed busy for {limits.wall_seconds:g} s",
+            code="busy",
+        )
     try:
         return _run(ctx, fn, args, kwargs, limits, deadline)
     finally:

@@ -136,6 +136,28 @@ def test_works_in_a_celery_pool_worker():
     worker.join(10)
 
 
+def test_a_call_finding_every_slot_taken_is_busy():
+    """Concurrent calls beyond ``MAX_CHILDREN`` wait for a slot; past their wall clock: busy."""
+    from dancegraph import sandbox
+
+    hold = SandboxLimits(1024**3, 30.0, 4.0)
+    threads = [
+        threading.Thread(
+            target=lambda: pytest.raises(SandboxError, run_sandboxed, _hang, limits=hold)
+        )
+        for _ in range(sandbox.MAX_CHILDREN)
+    ]
+    for t in threads:
+        t.start()
+    while sandbox._slots._value:  # every slot taken by a hanging child
+        time.sleep(0.05)
+    with pytest.raises(SandboxError) as info:
+        run_sandboxed(_add, 1, limits=SandboxLimits(1024**3, 1.0, 0.5))
+    assert info.value.code == "busy" and info.value.status == 503
+    for t in threads:
+        t.join()
+
+
 def test_an_unexpected_exception_is_a_crash_without_its_text():
     with pytest.raises(SandboxError) as info:
         run_sandboxed(_bug, limits=SHORT)

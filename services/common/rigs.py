@@ -73,10 +73,15 @@ def rig_limits(settings: Settings) -> SandboxLimits:
 
 def _sandboxed(fn, path: Path, mapping: dict[str, str] | None, limits: SandboxLimits):
     """``fn(path, mapping)`` in the sandbox; its failures as ``RigError`` (422):
-    ``rig_too_complex`` past a limit, ``rig_unreadable`` for a crash."""
+    ``rig_too_complex`` past a limit, ``rig_unreadable`` for a crash; ``ApiError`` 503
+    ``rig_parse_busy`` when every sandbox slot stayed taken."""
     try:
         return run_sandboxed(fn, str(path), mapping=mapping or None, limits=limits)
     except SandboxError as exc:
+        if exc.code == "busy":
+            raise ApiError(
+                503, "rig_parse_busy", exc.message, field="rig", headers={"Retry-After": "5"}
+            ) from None
         code = "rig_unreadable" if exc.code == "crashed" else "rig_too_complex"
         raise RigError(f"{path.name}: {exc.message}", code=code, field="rig") from None
 
