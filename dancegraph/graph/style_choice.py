@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -111,7 +112,7 @@ def choose_library(analysis, candidates: list[Candidate]) -> dict:
         )
     zm = song_styles(analysis)
     tempo = float(analysis.tempo_bpm)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for c in candidates:
         cost, octave = tempo_cost(tempo, c.tempo_range)
         dist = style_distance(zm, c.node_styles)
@@ -127,7 +128,7 @@ def choose_library(analysis, candidates: list[Candidate]) -> dict:
                 "score": round(TEMPO_WEIGHT * cost + STYLE_WEIGHT * dist, 4),
             }
         )
-    rows.sort(key=lambda r: r["score"])
+    rows.sort(key=lambda r: float(r["score"]))
     return {
         "chosen": rows[0]["name"],
         "reason": _reason(tempo, rows),

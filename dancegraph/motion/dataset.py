@@ -118,10 +118,11 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from dancegraph.errors import DanceGraphError, MotionFileError, NotFoundError
+from dancegraph.motion import quat
 from dancegraph.motion import tempo as tempo_mod
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.features import MAIN_JOINTS, kinematic_beats
-from dancegraph.motion.fk import canonical_positions, forward_kinematics
+from dancegraph.motion.fk import canonical_positions, fk_arrays, forward_kinematics
 from dancegraph.motion.rig import (
     REQUIRED_ROLES,
     Rig,
@@ -531,11 +532,12 @@ class ImportReport:
 def check_line(c: ClipInfo) -> str:
     """One line: how a music take's grid and its motion's own estimate agree."""
     g = c.grid_check
+    share = g["downbeat_agreement"]
     return (
         f"music/motion {c.id}: tempo {_fmt(g['music_tempo_bpm'])}/{_fmt(g['motion_tempo_bpm'])} BPM"
         f" ({_fmt(g['tempo_diff_pct'], 2)} %), median beat offset"
         f" {_fmt(g['median_offset_ms'], 0)} ms, downbeats agree"
-        f" {_fmt(100 * g['downbeat_agreement'] if g['downbeat_agreement'] is not None else None, 0)} %"
+        f" {_fmt(100 * share if share is not None else float('nan'), 0)} %"
         f" (else {g['downbeat_shift_beats']} beats apart): {'agree' if g['agree'] else 'DISAGREE'}"
     )
 
@@ -1325,12 +1327,10 @@ class _Library:
 
 
 def _rest(skeleton: Skeleton) -> np.ndarray:
-    """``(J, 3)`` rest-pose joint positions (m), summed from the offsets."""
-    pos = np.zeros((skeleton.n_joints, 3))
-    for j in range(skeleton.n_joints):
-        p = skeleton.parents[j]
-        pos[j] = skeleton.offsets[j] if p < 0 else pos[p] + skeleton.offsets[j]
-    return pos
+    """``(J, 3)`` rest-pose joint positions (m): forward kinematics of no rotation, the root at
+    its offset."""
+    still = quat.identity((1, skeleton.n_joints))
+    return fk_arrays(skeleton, skeleton.offsets[:1], still)[0][0]
 
 
 def _take_roles(skeleton: Skeleton, mapping: dict[str, str] | None, name: str) -> RoleMap:
@@ -1402,6 +1402,7 @@ def _library_rig(lib: _Library) -> Rig:
                 code="skeleton_source_invalid",
                 field="skeleton",
             ) from None
+    assert lib.rig is not None
     return lib.rig
 
 

@@ -34,16 +34,10 @@ def read_fbx_motion(
     ``fps``: the sampling rate (default: the file's). Raises ``MotionFileError``
     (``fbx_invalid``, ``take_no_animation``) and the ``RigError`` codes of ``load_rig``.
     """
-    from dancegraph.motion.gltf_anim import motion_from_world
-    from dancegraph.motion.rig import RigError, load_rig
+    from dancegraph.motion.gltf_anim import motion_from_world, take_rig
 
     path = Path(path)
-    try:
-        rig = load_rig(path, mapping=mapping)
-    except RigError as exc:
-        if exc.code == "rig_unreadable":
-            raise MotionFileError(exc.message, path=path.name, code="fbx_invalid") from None
-        raise
+    rig = take_rig(path, mapping, "fbx_invalid")
     with tempfile.TemporaryDirectory(prefix="dg-fbx-anim-") as tmp:
         out = Path(tmp) / "anim.npz"
         cmd = [sys.executable, "-m", "dancegraph.motion.fbx_anim", str(path), str(out)]
@@ -115,7 +109,7 @@ def _evaluate(path: str, fps: float, keep: list) -> dict[str, np.ndarray]:  # pr
         mats = [nd.node_to_world for nd in named]
         keep.extend(mats)
         world.append(np.stack([_matrix(m) for m in mats]))
-    return {"names": np.array(names, dtype=str), "world": np.stack(world), "fps": np.float64(rate)}
+    return {"names": np.array(names, dtype=str), "world": np.stack(world), "fps": np.array(rate)}
 
 
 if __name__ == "__main__":  # pragma: no cover - the child process

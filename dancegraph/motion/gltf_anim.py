@@ -14,6 +14,7 @@ Translations of joints below the root are not kept (the bind offsets stand), as 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -22,11 +23,16 @@ from dancegraph.errors import MotionFileError
 from dancegraph.motion import quat
 from dancegraph.motion.skeleton import Motion
 
+if TYPE_CHECKING:
+    from dancegraph.motion.gltf import _Buffers
+
 #: Frame rates a key interval snaps to.
 COMMON_FPS = (24.0, 25.0, 30.0, 48.0, 50.0, 60.0, 100.0, 120.0, 240.0)
 
 
-def _channel(doc: dict, buffers: list, sampler: dict, path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _channel(
+    doc: dict, buffers: _Buffers, sampler: dict, path: Path
+) -> tuple[np.ndarray, np.ndarray]:
     """``(K,)`` key times and ``(K, w)`` key values of one sampler (spline tangents dropped)."""
     from dancegraph.motion.gltf import _accessor
 
@@ -54,7 +60,8 @@ def _sample(times: np.ndarray, values: np.ndarray, t: np.ndarray, kind: str, ste
 
 def _take_fps(all_times: list[np.ndarray], path: Path) -> float:
     """The frame rate of the keys: 1 / median key interval, snapped to a common rate."""
-    steps = np.concatenate([np.diff(np.unique(t)) for t in all_times if len(t) > 1] or [[]])
+    diffs = [np.diff(np.unique(t)) for t in all_times if len(t) > 1]
+    steps = np.concatenate(diffs) if diffs else np.zeros(0)
     steps = steps[steps > 1e-6]
     if steps.size == 0:
         raise MotionFileError(
@@ -65,7 +72,7 @@ def _take_fps(all_times: list[np.ndarray], path: Path) -> float:
     return near if abs(near - fps) <= 0.01 * near else fps
 
 
-def _node_tracks(doc: dict, buffers: list, path: Path, fps: float | None):
+def _node_tracks(doc: dict, buffers: _Buffers, path: Path, fps: float | None):
     """``(t (F,), fps, tracks)``: ``tracks[node][path]`` sampled at ``t``."""
     anims = doc.get("animations") or []
     if not anims or not anims[0].get("channels"):
@@ -138,15 +145,10 @@ def read_gltf_motion(
     ``RigError`` codes of ``load_rig`` (``rig_missing_roles`` for a non-humanoid skeleton).
     """
     from dancegraph.motion.gltf import _load
-    from dancegraph.motion.rig import RigError, load_rig
+    from dancegraph.motion.rig import RigError
 
     path = Path(path)
-    try:
-        rig = load_rig(path, mapping=mapping)
-    except RigError as exc:
-        if exc.code == "rig_unreadable":
-            raise MotionFileError(exc.message, path=path.name, code="gltf_invalid") from None
-        raise
+    rig = take_rig(path, mapping, "gltf_invalid")
     try:
         doc, buffers = _load(path)
         t, rate, tracks = _node_tracks(doc, buffers, path, fps)
@@ -164,6 +166,19 @@ def read_gltf_motion(
         ) from None
     mats = np.stack([world[i] for i in node_of], axis=1)  # (F, J, 4, 4)
     return motion_from_world(rig, mats, rate, path.name, "gltf_invalid"), rig
+
+
+def take_rig(path: Path, mapping: dict[str, str] | None, code: str):
+    """The rig of an animated take file (``load_rig``); an unreadable file is the take's
+    ``MotionFileError`` ``code``, the other ``RigError`` codes pass."""
+    from dancegraph.motion.rig import RigError, load_rig
+
+    try:
+        return load_rig(path, mapping=mapping)
+    except RigError as exc:
+        if exc.code == "rig_unreadable":
+            raise MotionFileError(exc.message, path=path.name, code=code) from None
+        raise
 
 
 def motion_from_world(rig, world: np.ndarray, fps: float, name: str, code: str) -> Motion:
