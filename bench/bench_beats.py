@@ -24,14 +24,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from dancegraph.errors import AudioError  # noqa: E402
-from dancegraph.music.beats import (  # noqa: E402
-    BEATNET_1_1_3,
-    beat_f_measure,
-    track_beats,
-    warm_up,
-)
+from dancegraph.music.beats import track_beats, warm_up  # noqa: E402
 from dancegraph.music.decode import load_audio  # noqa: E402
 from dancegraph.music.generator import generate_song  # noqa: E402
+from dancegraph.music.params import BEATNET_1_1_3  # noqa: E402
+from dancegraph.music.signal import beat_f_measure  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 
 TRACKERS = {

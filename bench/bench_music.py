@@ -69,10 +69,10 @@ from dancegraph.music.analysis import (  # noqa: E402
     four_beat_bars,
     phrase_unit,
 )
-from dancegraph.music.beats import beat_f_measure  # noqa: E402
 from dancegraph.music.decode import load_audio, resample  # noqa: E402
 from dancegraph.music.features import frame_features  # noqa: E402
 from dancegraph.music.generator import bar_grid, generate_song, write_song  # noqa: E402
+from dancegraph.music.signal import beat_f_measure  # noqa: E402
 from dancegraph.music.structure import analyze_structure  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 from dancegraph.rhythm.music import music_signatures  # noqa: E402

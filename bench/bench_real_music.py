@@ -17,7 +17,7 @@ annotations past the end of the audio are dropped; a file without beat-in-bar nu
 left out of the tables and scored apart, for beat F and ``no_beat`` only (the default analysis).
 The genre is the name up to its first ``.`` or ``_``.
 
-Metrics: beat F and downbeat F at ±70 ms (``beats.beat_f_measure``); meter accuracy (the
+Metrics: beat F and downbeat F at ±70 ms (``signal.beat_f_measure``); meter accuracy (the
 annotated beats per bar; a 2/4 piece reported in 4 counts as right: the dance bar is 4 beats);
 tempo-octave errors (the reported tempo more than 8 % off the annotated one, 60 / median
 interval: counted at x2, x1/2 or other); false ``no_beat`` (every file is music); and the
@@ -54,19 +54,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from dancegraph.errors import AudioError  # noqa: E402
-from dancegraph.music.beats import (  # noqa: E402
+from dancegraph.music.beats import track_beats, track_evidence, warm_up  # noqa: E402
+from dancegraph.music.decode import load_audio  # noqa: E402
+from dancegraph.music.evidence import Evidence, beat_evidence  # noqa: E402
+from dancegraph.music.params import (  # noqa: E402
     BEATNET_1_1_3,
     DEFAULT_STEPS,
-    STEPS,
-    BeatParams,
-    Evidence,
-    beat_evidence,
-    beat_f_measure,
-    track_beats,
-    track_evidence,
-    warm_up,
+    STEP_NAMES,
+    AnalysisParams,
 )
-from dancegraph.music.decode import load_audio  # noqa: E402
+from dancegraph.music.signal import beat_f_measure  # noqa: E402
 from dancegraph.paths import shared_dir  # noqa: E402
 
 OCTAVE_TOL = 0.08
@@ -212,9 +209,9 @@ def load_clips(root: Path, held_out_last: int) -> list[Clip]:
         times, pos = read
         keep = times <= len(y) / sr
         evs: list[Evidence | AudioError] = []
-        for models in (BeatParams().models, BEATNET_1_1_3.models):
+        for params in (AnalysisParams(), BEATNET_1_1_3):
             try:
-                evs.append(beat_evidence(y, sr, models=models))
+                evs.append(beat_evidence(y, sr, params=params))
             except AudioError as exc:
                 evs.append(exc)
         genre = re.split(r"[._]", audio.stem)[0]
@@ -226,10 +223,10 @@ def load_clips(root: Path, held_out_last: int) -> list[Clip]:
     return clips
 
 
-def score(clip: Clip, params: BeatParams) -> dict:
+def score(clip: Clip, params: AnalysisParams) -> dict:
     """One clip's metrics under ``params`` (a refused clip scores 0 and counts as no_beat)."""
     try:
-        ev = clip.evidence if params.models == BeatParams().models else clip.evidence_1
+        ev = clip.evidence if params.models == AnalysisParams().models else clip.evidence_1
         if isinstance(ev, AudioError):
             raise ev
         bt = track_evidence(ev, params)
@@ -311,18 +308,18 @@ def _summary(rows: list[dict]) -> str:
 HEADER = f"{'':<28} {'n':>4} {'down F':>7} {'beat F':>7} {'meter':>6} {'oct %':>6} {'no_beat':>7}"
 
 
-def variants() -> dict[str, BeatParams]:
+def variants() -> dict[str, AnalysisParams]:
     """The default, BeatNet 1.1.3, the decoder alone, and each step switched off (or on)."""
     out = {
-        "default": BeatParams(),
-        "decoder alone (no step)": BeatParams(steps=frozenset()),
+        "default": AnalysisParams(),
+        "decoder alone (no step)": AnalysisParams(steps=frozenset()),
         "BeatNet 1.1.3": BEATNET_1_1_3,
     }
-    for name, _ in STEPS:
+    for name in STEP_NAMES:
         if name in DEFAULT_STEPS:
-            out[f"  - {name}"] = BeatParams().without(name)
+            out[f"  - {name}"] = AnalysisParams().without(name)
         else:
-            out[f"  + {name}"] = BeatParams().with_steps(name)
+            out[f"  + {name}"] = AnalysisParams().with_steps(name)
     return out
 
 
@@ -398,7 +395,10 @@ def run_moved(root: Path, clips: list[Clip], kind: str, amounts: list[float]) ->
     'start'), beside the clip as it is. A recording that starts a little later, or an excerpt of
     it, must get the same bars. Prints, per part (all, dev, held-out), the mean per amount, the
     mean over all, and the clips whose downbeat F differs by more than 0.3 between amounts."""
-    params = {"default": BeatParams(), "decoder alone (no step)": BeatParams(steps=frozenset())}
+    params = {
+        "default": AnalysisParams(),
+        "decoder alone (no step)": AnalysisParams(steps=frozenset()),
+    }
     shape = (len(clips), len(amounts) + 1)
     down = {k: np.zeros(shape) for k in params}
     level = {k: np.zeros(shape) for k in params}
@@ -427,6 +427,59 @@ def run_moved(root: Path, clips: list[Clip], kind: str, amounts: list[float]) ->
     d = down["default"]
     apart = [c.name for c, row in zip(clips, d, strict=True) if row.max() - row.min() > 0.3]
     print(f"default, downbeat F apart by more than 0.3: {' '.join(apart) or '-'}")
+
+
+#: where the excerpts of a full song start, as shares of its length
+EXCERPT_SHARES = (1 / 3, 1 / 2)
+
+
+def _audio_files(folder: Path) -> list[Path]:
+    """The audio files of ``folder`` (or of its ``audio/`` folder), sorted."""
+    base = folder / "audio" if (folder / "audio").is_dir() else folder
+    return sorted(
+        p for p in base.iterdir() if p.suffix.lower() in {".wav", ".ogg", ".flac", ".mp3"}
+    )
+
+
+def excerpt_agreement(
+    whole: tuple[np.ndarray, np.ndarray], part: tuple[np.ndarray, np.ndarray], start: float
+) -> tuple[float, float]:
+    """(beat F, downbeat F) at ±70 ms of an excerpt's ``part`` (beats (K,), downbeats (M,) s,
+    in the excerpt's time) against the ``whole`` song's, the excerpt moved by ``start`` s and
+    both taken from the excerpt's first second on (its first beats have no context)."""
+    after = start + 1.0
+    pick = lambda t: t[t >= after]  # noqa: E731
+    return (
+        beat_f_measure(pick(whole[0]), pick(part[0] + start)),
+        beat_f_measure(pick(whole[1]), pick(part[1] + start)),
+    )
+
+
+def run_excerpts(folders: list[Path]) -> None:
+    """Excerpt consistency of full songs, no labels needed: each song analysed whole and from
+    each of :data:`EXCERPT_SHARES` of its length, the excerpt's beats and downbeats against the
+    whole song's (:func:`excerpt_agreement`), for the default and the decoder alone. An upload
+    of part of a song must get the bars the whole song gets there."""
+    files = [p for folder in folders for p in _audio_files(folder)]
+    params = {"default": AnalysisParams(), "decoder alone": AnalysisParams(steps=frozenset())}
+    rows: dict[str, list[tuple[float, float]]] = {k: [] for k in params}
+    print(f"\nexcerpt consistency, {len(files)} full songs (beat / downbeat agreement per start)")
+    for path in files:
+        y, sr = load_audio(path)
+        cuts = [0] + [int(round(share * len(y))) for share in EXCERPT_SHARES]
+        evs = [beat_evidence(y[n:], sr) for n in cuts]
+        cells = []
+        for label, p in params.items():
+            tracked = [track_evidence(ev, p) for ev in evs]
+            whole = (tracked[0].beats, tracked[0].downbeats)
+            for n, bt in zip(cuts[1:], tracked[1:], strict=True):
+                rows[label].append(excerpt_agreement(whole, (bt.beats, bt.downbeats), n / sr))
+                cells.append(f"{rows[label][-1][0]:.2f}/{rows[label][-1][1]:.2f}")
+        print(f"  {path.stem[:40]:<40} {len(y) / sr:6.1f} s  " + "  ".join(cells))
+    for label, r in rows.items():
+        if r:
+            beat, down = np.mean(r, axis=0)
+            print(f"  {label:<40} beats {beat:.3f}  downbeats {down:.3f}  (target >= 0.9)")
 
 
 def run_batch(root: Path) -> None:
@@ -482,6 +535,14 @@ def main(argv: list[str] | None = None) -> int:
         "scored as a row beside the default (repeatable)",
     )
     ap.add_argument(
+        "--full",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder of full-length songs (annotated or not) for the excerpt consistency: "
+        "each analysed whole and from a third and from half of its length (repeatable)",
+    )
+    ap.add_argument(
         "--music",
         action="append",
         default=[],
@@ -494,6 +555,8 @@ def main(argv: list[str] | None = None) -> int:
     warm_up()
     run_unannotated(non_music, music=False)
     run_unannotated([Path(d) for d in args.music], music=True)
+    if args.full:
+        run_excerpts([Path(d) for d in args.full])
     if root is None or not (root / "audio").is_dir():
         print("real-music benchmark skipped: no folder (--root or $DANCEGRAPH_REAL_MUSIC)")
         return 0

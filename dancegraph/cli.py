@@ -117,21 +117,29 @@ def _add_analyze(sub) -> None:
         help="one JSON object per line and file, with its path; a file that fails gives its "
         "error code and the rest go on (exit status 2 when any failed)",
     )
+    p.add_argument(
+        "--params",
+        metavar="FILE",
+        help="YAML or JSON file of analysis parameters to override (keys of "
+        "dancegraph.music.params.AnalysisParams, nested; unknown keys are refused)",
+    )
 
     def run(args) -> int:
         from dancegraph.music.analysis import analyze
+        from dancegraph.music.params import load_params
 
+        params = load_params(args.params) if args.params else None
         _warm_kernels("dancegraph.music.beats")
         if not args.jsonl:
             if len(args.audio) > 1:
                 p.error("several files need --jsonl")
-            result = analyze(args.audio[0], tempo_range=args.tempo_range)
+            result = analyze(args.audio[0], tempo_range=args.tempo_range, params=params)
             print_json(result.to_dict() if args.json else result.summary())
             return 0
         failed = 0
         for path in args.audio:  # one process: the models and kernels load once
             try:
-                result = analyze(path, tempo_range=args.tempo_range)
+                result = analyze(path, tempo_range=args.tempo_range, params=params)
                 line = {"path": path, **(result.to_dict() if args.json else result.summary())}
             except DanceGraphError as exc:
                 failed += 1

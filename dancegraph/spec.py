@@ -15,7 +15,7 @@ import json
 import math
 import re
 from collections.abc import Mapping
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -30,6 +30,9 @@ from pydantic import (
 
 from dancegraph.errors import SpecError, field_errors
 from dancegraph.motion.retime import BEAT_ACCENT, STOPS_ON_BEATS
+
+if TYPE_CHECKING:
+    from dancegraph.music.params import AnalysisParams
 
 _NODE_PATTERN = re.compile(r"^[A-Za-z0-9._-]+:(\*|\d+)(~[a-z0-9]+)?$")
 
@@ -237,6 +240,12 @@ class Spec(_Strict):
         "tempo (analysis grid_octave x2 or x1/2, with a warning). Default: the range the "
         "dataset declares (its manifest's style_tempo_bpm), else the tracked tempo",
     )
+    analysis: dict[str, Any] | None = Field(
+        None,
+        description="overrides of the music analysis's parameters: nested keys of "
+        'dancegraph.music.params.AnalysisParams, e.g. {"group": {"net_confident": 0.75}} '
+        "(docs/music.md); unknown keys and wrong types are refused. Default: the tuned values",
+    )
     couple: bool = Field(
         False,
         description="dance as a couple, the lead and the follow together, from the dataset's "
@@ -254,6 +263,24 @@ class Spec(_Strict):
         if value is not None and value[0] >= value[1]:
             raise ValueError("tempo_range must be [lo, hi] BPM with lo < hi")
         return value
+
+    @field_validator("analysis")
+    @classmethod
+    def _analysis_params_known(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        if value is not None:
+            from dancegraph.music.params import AnalysisParams
+
+            try:
+                AnalysisParams.from_dict(value)
+            except SpecError as exc:
+                raise ValueError(exc.message) from exc
+        return value
+
+    def analysis_params(self) -> AnalysisParams | None:
+        """The music analysis's parameters this spec asks for (None: the defaults)."""
+        from dancegraph.music.params import AnalysisParams
+
+        return None if self.analysis is None else AnalysisParams.from_dict(self.analysis)
 
     @model_validator(mode="after")
     def _waypoints_on_stage(self):

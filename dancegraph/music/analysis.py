@@ -37,6 +37,7 @@ import numpy as np
 
 from dancegraph.errors import AudioError
 from dancegraph.music.features import FEATURE_SR, bar_onset_rms, frame_features
+from dancegraph.music.params import AnalysisParams
 from dancegraph.music.structure import analyze_structure
 from dancegraph.rhythm.music import song_signatures
 
@@ -247,7 +248,7 @@ def fit_tempo_range(
     range only picks the octave the dance bars count. Returns (beats, positions, meter, octave
     ``x1`` | ``x2`` | ``x1/2``, warnings).
     """
-    from dancegraph.music.beats import split_beats
+    from dancegraph.music.levels import split_beats
     from dancegraph.music.tempo import tempo_from_beats
 
     lo, hi = tempo_range
@@ -308,11 +309,38 @@ def analysis_version() -> str:
     return digest.hexdigest()[:12]
 
 
+def _samples(path_or_array: str | os.PathLike | np.ndarray, sr: int | None) -> np.ndarray:
+    """Mono float32 samples at ``FEATURE_SR`` Hz from a file or an array (see :func:`analyze`)."""
+    from dancegraph.music.decode import load_audio
+
+    if not isinstance(path_or_array, np.ndarray):
+        return load_audio(path_or_array, sr=FEATURE_SR)[0]
+    if sr is None:
+        raise AudioError(
+            "a sample array needs its sample rate", code="audio_undecodable", field="sr"
+        )
+    y = np.asarray(path_or_array)
+    if np.issubdtype(y.dtype, np.integer):  # PCM integers → [-1, 1]
+        y = y / float(np.iinfo(y.dtype).max + 1)
+    y = y.astype(np.float32)
+    if y.ndim == 2:
+        y = y.mean(axis=0)
+    if y.ndim != 1 or y.size == 0:
+        raise AudioError("expected (N,) or (C, N) samples", code="audio_empty", field="audio")
+    y = np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
+    if sr != FEATURE_SR:
+        import librosa
+
+        y = librosa.resample(y, orig_sr=int(sr), target_sr=FEATURE_SR)
+    return y
+
+
 def analyze(
     path_or_array: str | os.PathLike | np.ndarray,
     sr: int | None = None,
     *,
     tempo_range: tuple[float, float] | None = None,
+    params: AnalysisParams | None = None,
 ) -> MusicAnalysis:
     """Analyse a song given as a file path or as samples.
 
@@ -320,37 +348,18 @@ def analyze(
     ``(C, N)`` (float in [-1, 1], or PCM integers) at ``sr`` Hz (required for arrays; ignored
     for files, which are decoded at 22.05 kHz). ``tempo_range``: a dance style's (lo, hi) BPM;
     the beats and bars then count the octave of the tracked tempo that fits it
-    (:func:`fit_tempo_range`). Raises ``AudioError`` (codes of ``load_audio``, ``no_beat`` when
-    no 4-beat bar can be formed).
+    (:func:`fit_tempo_range`). ``params``: every threshold of the beat, tempo, bar-grouping and
+    no-beat steps (:class:`~dancegraph.music.params.AnalysisParams`; default its defaults).
+    Raises ``AudioError`` (codes of ``load_audio``, ``no_beat`` when no 4-beat bar can be
+    formed).
     """
     from dancegraph import jit
     from dancegraph.music.beats import track_beats  # the tracker loads torch: only when used
-    from dancegraph.music.decode import load_audio
 
     jit.ensure("music")  # librosa's kernels load under the cache lock, before the features use them
-
-    if isinstance(path_or_array, np.ndarray):
-        if sr is None:
-            raise AudioError(
-                "a sample array needs its sample rate", code="audio_undecodable", field="sr"
-            )
-        y = np.asarray(path_or_array)
-        if np.issubdtype(y.dtype, np.integer):  # PCM integers → [-1, 1]
-            y = y / float(np.iinfo(y.dtype).max + 1)
-        y = y.astype(np.float32)
-        if y.ndim == 2:
-            y = y.mean(axis=0)
-        if y.ndim != 1 or y.size == 0:
-            raise AudioError("expected (N,) or (C, N) samples", code="audio_empty", field="audio")
-        y = np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
-        if sr != FEATURE_SR:
-            import librosa
-
-            y = librosa.resample(y, orig_sr=int(sr), target_sr=FEATURE_SR)
-    else:
-        y, _ = load_audio(path_or_array, sr=FEATURE_SR)
+    y = _samples(path_or_array, sr)
     duration = len(y) / FEATURE_SR
-    bt = track_beats(y, FEATURE_SR)
+    bt = track_beats(y, FEATURE_SR, params=params)
     beats, positions, meter = bt.beats, bt.beat_positions, bt.meter
     octave, tempo_bpm, warnings = "x1", float(bt.tempo_bpm), list(bt.warnings)
     if tempo_range is not None:

@@ -11,33 +11,33 @@ tracked beats (K beats, 50 fps frame indices) with two kinds of evidence:
   distance between beats ``L`` apart. Music repeats itself at the bar (rhythm patterns, chord
   per bar, melodic motifs), so the distance is lowest at multiples of the bar length: the meter
   whose lags (3, 6 against 4, 8 beats; the chroma at 6 and 8 only, see :func:`meter_distances`)
-  are clearly closer (:data:`METER_MARGIN`; toward 4, the commoner meter,
-  :data:`METER_MARGIN_TO_4`) wins over the network's choice. It needs no accent on the
+  are clearly closer (``meter_margin``; toward 4, the commoner meter,
+  ``meter_margin_to_4``) wins over the network's choice. It needs no accent on the
   downbeat at all; where the downbeat evidence below forms far clearer bars of 4 than of 3
-  (:data:`CLARITY_MARGIN`), 4 needs no margin and 3 is not taken.
+  (``clarity_margin``), 4 needs no margin and 3 is not taken.
 - Bar phase from a beat-level bar-pointer model (Viterbi over "position in the bar" states,
   one meter): per beat the downbeat evidence is BeatNet's downbeat logit plus
-  :data:`HARMONY_WEIGHT` times the harmonic change into the beat (chroma above the bass, first
-  half of each beat so an anticipated chord still counts) less :data:`BACKBEAT_WEIGHT` times
+  ``harmony_weight`` times the harmonic change into the beat (chroma above the bass, first
+  half of each beat so an anticipated chord still counts) less ``backbeat_weight`` times
   the noise onsets in the snare band (snares and claps: the backbeat, on beats 2 and 4, or 3
   in half time, never on the downbeat; it still marks the bar where off-beat drums take the
-  kick off the downbeat), each z-scored, minus its moving average over :data:`LOCAL_BEATS`
+  kick off the downbeat), each z-scored, minus its moving average over ``local_beats``
   beats (a section's overall level says nothing about where its bars start). Each beat either
   advances the position or
-  restarts the bar with log probability :data:`LOG_RESTART`, so the phase can change between
+  restarts the bar with log probability ``log_restart``, so the phase can change between
   sections (an inserted 2-beat measure, a tracker slip) when several bars of evidence agree.
   Next to a glitch of the beat grid (an interval 15 % off the running median: where the tracker
   slid onto the off-beats and back, or dropped or doubled a beat) the count of beats itself is
-  not to be trusted, so a restart there costs only :data:`LOG_RESTART_GLITCH` (about one bar of
+  not to be trusted, so a restart there costs only ``log_restart_glitch`` (about one bar of
   evidence): without it the bars after each slip stayed one beat off for many bars.
 - A network sure of its downbeats keeps them: where BeatNet's mean downbeat activation at the
-  downbeats of its own best bar path is at least :data:`NET_CONFIDENT`
+  downbeats of its own best bar path is at least ``net_confident``
   (:func:`network_confidence`), the bar phase comes from its evidence alone; the harmony and
   the backbeat still decide the meter. On real recordings the harmony and the backbeat moved
   right downbeats by two beats where the network was sure; on generated hard songs, built to
   mislead it, the network is never that sure (docs/music.md).
 - Duple: when the network says 2 beats per bar and the meter test does not say 3, the beats are
-  grouped in 4 when the 4-beat downbeats clearly beat the half-bar beats (:data:`DUPLE_MARGIN`:
+  grouped in 4 when the 4-beat downbeats clearly beat the half-bar beats (``duple_margin``:
   a 4/4 song with a strong backbeat, or 2/4 music whose measures audibly pair up); otherwise 2
   is kept. For a dance product 2/4 and 4/4 differ only in notation: the dance bar is 4 beats
   (two 2/4 measures, see :func:`dancegraph.music.analysis.four_beat_bars`), and what matters is
@@ -52,6 +52,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from dancegraph.music.params import GroupParams
+from dancegraph.music.signal import beat_spans, harmonic_change, peak_near, zscore
+
 __all__ = [
     "bar_clarity",
     "beat_features",
@@ -61,97 +64,12 @@ __all__ = [
     "grid_glitches",
     "group_beats",
     "half_bar_contrast",
-    "harmonic_change",
     "lag_distance",
     "meter_distances",
     "network_confidence",
-    "peak_near",
     "phase_viterbi",
     "restart_costs",
-    "zscore",
 ]
-
-#: mean lag-distance difference (feature units) by which 3 or 4 must win to override the network
-#: (between the margins of right and wrong overrides on generated songs)
-METER_MARGIN = 0.15
-#: the same for a halved grid (no network prior; 3 must win against 4 by this)
-HALVED_METER_MARGIN = 0.075
-#: the margin by which 4 must win where the network counted 3: 4/4 is the commoner meter, so
-#: less evidence overrides toward it
-METER_MARGIN_TO_4 = 0.075
-#: how much more clearly the downbeat evidence must form bars of 4 than bars of 3 (mean evidence
-#: at the downbeats less that at the other beats, z-units) to outweigh the bar-length
-#: self-similarity: the meter goes from the network's 3 to 4 when the self-similarity leans to 4
-#: at all and the evidence is this much clearer in 4, and not from 4 to 3 when it is
-CLARITY_MARGIN = 1.0
-#: weight of the harmonic change against the network's downbeat logit (both z-scored): the
-#: network follows kicks and bass accents, which the hard cases put off the downbeat. On real
-#: recordings the network is the better judge (the less weight, the steadier their bars); 1.25
-#: is the least that keeps every generated regression case (docs/music.md)
-HARMONY_WEIGHT = 1.25
-#: weight of the noise onsets in the snare band (snares, claps: the backbeat) against the
-#: downbeat evidence, subtracted: the backbeat falls on beats 2 and 4 (3 in half time), never
-#: on the downbeat — what marks the bar where the kick does not (off-beat drums)
-BACKBEAT_WEIGHT = 0.75
-#: the network's mean downbeat activation at its own downbeats above which its bar phase stands
-#: (:func:`network_confidence`): the harmony and the backbeat do not outvote a network this sure.
-#: On real recordings its phase is the better one at every confidence; the generated hard songs,
-#: built to mislead it, need the harmony and reach 0.66 on the regression seeds (docs/music.md)
-NET_CONFIDENT = 0.7
-#: mean downbeat evidence (z-units) by which 4-beat downbeats must beat the half-bar beats
-DUPLE_MARGIN = 0.3
-#: log probability of restarting the bar at a beat (about 10 nats: several bars of evidence)
-LOG_RESTART = -10.0
-#: log probability of a bar restart next to a glitch of the beat grid (a tracker slip: the count
-#: of beats is least trustworthy there)
-LOG_RESTART_GLITCH = -2.0
-#: a glitch: an interval off the running median interval by this share ...
-GLITCH_DEV = 0.15
-#: ... over this many intervals; beats this close to it may restart cheaply
-GLITCH_CONTEXT = 33
-GLITCH_REACH = 2
-#: beats over which the evidence's moving average is removed
-LOCAL_BEATS = 12
-
-
-def zscore(v: np.ndarray) -> np.ndarray:
-    """``v`` (K,) standardised: zero mean, unit standard deviation (all zeros if constant)."""
-    return (v - v.mean()) / (v.std() + 1e-9)
-
-
-def peak_near(curve: np.ndarray, frames: np.ndarray, reach: int = 2) -> np.ndarray:
-    """(K,) the maximum of ``curve`` (T,) within ``reach`` frames of each of ``frames`` (K,),
-    clipped to the curve: a detector's peak lags or leads the beat it belongs to by a frame."""
-    fr = np.clip(np.asarray(frames, dtype=np.int64), 0, len(curve) - 1)
-    return np.array([curve[max(f - reach, 0) : f + reach + 1].max() for f in fr], dtype=np.float64)
-
-
-def _beat_spans(frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(starts, ends) frame indices of each beat (the last one lasts the median interval)."""
-    starts = np.clip(np.asarray(frames, dtype=np.int64), 0, n - 1)
-    last = int(np.median(np.diff(starts))) if len(starts) > 1 else 1
-    ends = np.r_[starts[1:], min(n, starts[-1] + max(last, 1))]
-    return starts, np.maximum(ends, starts + 1)
-
-
-def harmonic_change(chroma: np.ndarray, frames: np.ndarray, k: int = 2) -> np.ndarray:
-    """(K,) harmonic change into each beat: cosine distance between the mean beat-synchronous
-    chroma (12, T) of the ``k`` beats before and the ``k`` beats from it on (chords change on
-    bar lines).
-
-    Each beat's chroma is taken over the first half of the beat only, so a chord anticipated by
-    an eighth note (arriving on the "and" of the last beat) still counts for the downbeat.
-    """
-    n = chroma.shape[1]
-    starts, ends = _beat_spans(frames, n)
-    halves = starts + np.maximum((ends - starts) // 2, 1)
-    bc = np.stack([chroma[:, a:b].mean(axis=1) for a, b in zip(starts, halves, strict=True)])
-    out = np.zeros(len(starts))
-    for i in range(1, len(starts)):
-        a = bc[max(i - k, 0) : i].mean(axis=0)
-        b = bc[i : i + k].mean(axis=0)
-        out[i] = 1.0 - float(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-9)
-    return out
 
 
 def beat_features(
@@ -165,7 +83,7 @@ def beat_features(
     ``n_sub`` equal slots of the beat (its rhythm) and the mean chroma (12, T) over the beat
     (its harmony); each block standardised over the song and weighted equally."""
     n = min(len(onset_env), len(bass_onset), chroma.shape[1])
-    starts, ends = _beat_spans(frames, n)
+    starts, ends = beat_spans(frames, n)
     rows = []
     for a, b in zip(starts, ends, strict=True):
         b = min(max(b, a + n_sub), n)
@@ -217,11 +135,12 @@ def downbeat_evidence(
     tracked: np.ndarray | None = None,
     snare_onset: np.ndarray | None = None,
     network_only: bool = False,
+    p: GroupParams = GroupParams(),
 ) -> np.ndarray:
     """(K,) downbeat evidence per beat: z(logit of the peak BeatNet downbeat activation (T, 2)
-    within ±2 frames) + :data:`HARMONY_WEIGHT` z(harmonic change into the beat) - with
-    ``snare_onset`` (T,) :data:`BACKBEAT_WEIGHT` z(its peak within ±2 frames), minus its moving
-    average over :data:`LOCAL_BEATS` beats.
+    within ±2 frames) + ``harmony_weight`` z(harmonic change into the beat) - with
+    ``snare_onset`` (T,) ``backbeat_weight`` z(its peak within ±2 frames), minus its moving
+    average over ``local_beats`` beats (``p``: :class:`~dancegraph.music.params.GroupParams`).
 
     ``tracked`` (K,) bool: the beats the network itself tracked (default all). The network's
     downbeat activation belongs to its own beat grid, so at beats a mend moved (onto the other
@@ -237,11 +156,11 @@ def downbeat_evidence(
     if own.sum() > 1:
         net[own] = zscore(logit[own])
     if network_only:
-        return net - uniform_filter1d(net, LOCAL_BEATS, mode="nearest")
-    e = net + HARMONY_WEIGHT * zscore(harmonic_change(chroma, frames))
+        return net - uniform_filter1d(net, p.local_beats, mode="nearest")
+    e = net + p.harmony_weight * zscore(harmonic_change(chroma, frames))
     if snare_onset is not None:
-        e = e - BACKBEAT_WEIGHT * zscore(peak_near(snare_onset, frames))
-    return e - uniform_filter1d(e, LOCAL_BEATS, mode="nearest")
+        e = e - p.backbeat_weight * zscore(peak_near(snare_onset, frames))
+    return e - uniform_filter1d(e, p.local_beats, mode="nearest")
 
 
 def network_confidence(
@@ -294,9 +213,11 @@ def bar_clarity(
     bass_onset: np.ndarray,
     chroma: np.ndarray,
     snare_onset: np.ndarray,
+    p: GroupParams = GroupParams(),
 ) -> float:
     """How clearly a beat grid (``frames`` (K,) at 50 fps) forms bars: grouped by
-    :func:`group_beats` with no prior (``act`` (T, 2), the curves (T,) and ``chroma`` (12, T)),
+    :func:`group_beats` with no prior (``act`` (T, 2), the curves (T,) and ``chroma`` (12, T);
+    ``p`` the grouping's parameters),
     the mean :func:`downbeat_evidence` at its downbeats minus that at its other beats. NaN-free:
     0.0 under 16 beats (too few to group)."""
     k = len(frames)
@@ -304,10 +225,10 @@ def bar_clarity(
         return 0.0
     positions, _, _ = group_beats(
         np.ones(k, dtype=np.int64), np.full(k, 4), act, frames, onset_env, bass_onset, chroma,
-        meter_prior=False, snare_onset=snare_onset,
+        meter_prior=False, snare_onset=snare_onset, p=p,
     )  # fmt: skip
     return downbeat_contrast(
-        downbeat_evidence(act, frames, chroma, snare_onset=snare_onset), positions
+        downbeat_evidence(act, frames, chroma, snare_onset=snare_onset, p=p), positions
     )
 
 
@@ -321,13 +242,13 @@ def downbeat_contrast(evidence: np.ndarray, positions: np.ndarray) -> float:
 
 
 def phase_viterbi(
-    evidence: np.ndarray, meter: int, log_restart: float | np.ndarray = LOG_RESTART
+    evidence: np.ndarray, meter: int, log_restart: float | np.ndarray = GroupParams.log_restart
 ) -> np.ndarray:
     """(K,) positions in the bar (1 = downbeat) of the most likely beat-level bar-pointer path.
 
     States: position 0..meter-1; each beat advances the position (log 0) or restarts the bar
-    (``log_restart``: one value, or (K,) per beat, the cost of restarting at that beat); a beat at position 0 scores its ``evidence`` (log-likelihood ratio units),
-    the others 0.
+    (``log_restart``: one value, or (K,) per beat, the cost of restarting at that beat); a beat
+    at position 0 scores its ``evidence`` (log-likelihood ratio units), the others 0.
     """
     e = np.asarray(evidence, dtype=np.float64)
     m, n = int(meter), len(e)
@@ -349,9 +270,9 @@ def phase_viterbi(
     return path + 1
 
 
-def grid_glitches(frames: np.ndarray) -> np.ndarray:
-    """(K,) bool: beats within :data:`GLITCH_REACH` beats of an interval that differs by more
-    than :data:`GLITCH_DEV` from the running median interval (:data:`GLITCH_CONTEXT` beats)."""
+def grid_glitches(frames: np.ndarray, p: GroupParams = GroupParams()) -> np.ndarray:
+    """(K,) bool: beats within ``glitch_reach`` beats of an interval that differs by more
+    than ``glitch_dev`` from the running median interval (``glitch_context`` beats)."""
     from scipy.ndimage import median_filter
 
     f = np.asarray(frames, dtype=np.float64)
@@ -359,17 +280,43 @@ def grid_glitches(frames: np.ndarray) -> np.ndarray:
     if len(f) < 3:
         return out
     ibi = np.diff(f)
-    med = median_filter(ibi, GLITCH_CONTEXT, mode="nearest")
-    bad = np.flatnonzero(np.abs(ibi / np.maximum(med, 1e-9) - 1.0) > GLITCH_DEV)
+    med = median_filter(ibi, p.glitch_context, mode="nearest")
+    bad = np.flatnonzero(np.abs(ibi / np.maximum(med, 1e-9) - 1.0) > p.glitch_dev)
     for i in bad:  # interval i lies between beats i and i + 1
-        out[max(i + 1 - GLITCH_REACH, 0) : i + 1 + GLITCH_REACH] = True
+        out[max(i + 1 - p.glitch_reach, 0) : i + 1 + p.glitch_reach] = True
     return out
 
 
-def restart_costs(frames: np.ndarray) -> np.ndarray:
-    """(K,) log probability of a bar restart at each beat: :data:`LOG_RESTART`, and
-    :data:`LOG_RESTART_GLITCH` around glitches of the beat grid (:func:`grid_glitches`)."""
-    return np.where(grid_glitches(frames), LOG_RESTART_GLITCH, LOG_RESTART)
+def restart_costs(frames: np.ndarray, p: GroupParams = GroupParams()) -> np.ndarray:
+    """(K,) log probability of a bar restart at each beat: ``log_restart``, and
+    ``log_restart_glitch`` around glitches of the beat grid (:func:`grid_glitches`)."""
+    return np.where(grid_glitches(frames, p), p.log_restart_glitch, p.log_restart)
+
+
+def _decide_meter(
+    decoded: int,
+    dist: dict[int, float],
+    e: np.ndarray,
+    paths: dict[int, np.ndarray],
+    margin: float,
+    p: GroupParams,
+) -> tuple[int, float]:
+    """The meter (2, 3 or 4) from the ``decoded`` one, the bar-length self-similarity ``dist``
+    (:func:`meter_distances`) and the downbeat evidence ``e`` (K,) on its best bar ``paths`` of
+    3 and 4: (meter, how much more clearly the evidence forms bars of 4 than of 3)."""
+    meter = decoded
+    clearer_in_4 = float("nan")
+    if np.isfinite(dist[3]) and np.isfinite(dist[4]):
+        contrast = {m: downbeat_contrast(e, paths[m]) for m in (3, 4)}
+        clearer_in_4 = float(np.nan_to_num(contrast[4] - contrast[3]))
+        if decoded in (2, 4) and dist[3] < dist[4] - margin and clearer_in_4 < p.clarity_margin:
+            meter = 3
+        elif decoded == 3 and (
+            dist[4] < dist[3] - p.meter_margin_to_4
+            or (dist[4] < dist[3] and clearer_in_4 >= p.clarity_margin)
+        ):
+            meter = 4
+    return meter, clearer_in_4
 
 
 def group_beats(
@@ -383,6 +330,7 @@ def group_beats(
     tracked: np.ndarray | None = None,
     meter_prior: bool = True,
     snare_onset: np.ndarray | None = None,
+    p: GroupParams = GroupParams(),
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Re-decide the meter and bar phase of a decoded beat grid (see the module docstring).
 
@@ -391,7 +339,7 @@ def group_beats(
     and ``chroma`` (12, T) at the same 50 fps; ``tracked`` (K,) bool: the beats the network
     tracked itself (not moved by a mend; default all); ``meter_prior=False`` when the decoder
     counted other beats (a grid at twice the tactus, every other beat kept): its meter is then
-    no prior; 4 unless 3-beat bars repeat better by :data:`HALVED_METER_MARGIN`. Returns
+    no prior; 4 unless 3-beat bars repeat better by ``p.halved_meter_margin``. Returns
     (positions, meters, warnings): warnings ``meter_regrouped`` when the meter differs from the
     decoder's, ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats
     (not with ``meter_prior=False``: the decoder's downbeats were eighths, not these beats).
@@ -402,35 +350,22 @@ def group_beats(
     if n < 16:
         return positions, meters, []
     values, counts = np.unique(meters, return_counts=True)
-    decoded = int(values[np.argmax(counts)])
+    # without a prior the decoder counted eighths: 4, the commoner meter, is the prior
+    decoded = int(values[np.argmax(counts)]) if meter_prior else 4
     dist = meter_distances(beat_features(onset_env, bass_onset, chroma, frames))
-    if not meter_prior:  # the decoder counted eighths: 4, the commoner meter, is the prior
-        decoded = 4
-    margin = METER_MARGIN if meter_prior else HALVED_METER_MARGIN
-    e = downbeat_evidence(act, frames, chroma, tracked, snare_onset)
-    restarts = restart_costs(frames)
+    margin = p.meter_margin if meter_prior else p.halved_meter_margin
+    e = downbeat_evidence(act, frames, chroma, tracked, snare_onset, p=p)
+    restarts = restart_costs(frames, p)
     paths = {m: phase_viterbi(e, m, restarts) for m in (3, 4)}
-    meter = decoded
-    clearer_in_4 = float("nan")
-    if np.isfinite(dist[3]) and np.isfinite(dist[4]):
-        # how much more clearly the evidence forms bars of 4 than bars of 3
-        contrast = {m: downbeat_contrast(e, paths[m]) for m in (3, 4)}
-        clearer_in_4 = float(np.nan_to_num(contrast[4] - contrast[3]))
-        if decoded in (2, 4) and dist[3] < dist[4] - margin and clearer_in_4 < CLARITY_MARGIN:
-            meter = 3
-        elif decoded == 3 and (
-            dist[4] < dist[3] - METER_MARGIN_TO_4
-            or (dist[4] < dist[3] and clearer_in_4 >= CLARITY_MARGIN)
-        ):
-            meter = 4
+    meter, clearer_in_4 = _decide_meter(decoded, dist, e, paths, margin, p)
     grouping = 4 if meter == 2 else meter
     new = paths[grouping] if grouping in paths else phase_viterbi(e, grouping, restarts)
     # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
-    if meter == 2 and half_bar_contrast(e, new) > DUPLE_MARGIN:
+    if meter == 2 and half_bar_contrast(e, new) > p.duple_margin:
         meter = 4
     # a network sure of its downbeats keeps them: the harmony and the backbeat do not outvote it
-    own = downbeat_evidence(act, frames, chroma, tracked, network_only=True)
-    if network_confidence(act, frames, own, grouping, restarts, tracked) >= NET_CONFIDENT:
+    own = downbeat_evidence(act, frames, chroma, tracked, network_only=True, p=p)
+    if network_confidence(act, frames, own, grouping, restarts, tracked) >= p.net_confident:
         new = phase_viterbi(own, grouping, restarts)
     if meter == 2:
         new = (new - 1) % 2 + 1

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -222,13 +223,10 @@ def _kernel():
     return _KERNEL
 
 
-_SPACES: dict[BarPointerParams, _Space] = {}
-
-
+@lru_cache(maxsize=8)
 def _space(p: BarPointerParams) -> _Space:
-    if p not in _SPACES:
-        _SPACES[p] = _Space(p)
-    return _SPACES[p]
+    """The state space of ``p``, built once per parameters (a few MB each)."""
+    return _Space(p)
 
 
 def decode(activations: np.ndarray, params: BarPointerParams = DEFAULT) -> DecodedBeats:

@@ -174,6 +174,45 @@ def _av_blocks(path: Path, channels: int) -> Iterator[np.ndarray]:
         raise _err("audio_undecodable", f"decoding failed ({_why(exc, path)})", path) from exc
 
 
+def _decoded_chunks(
+    p: Path, info: AudioInfo, out_sr: int, mono: bool, max_seconds: float | None
+) -> tuple[list[np.ndarray], int]:
+    """The file decoded block by block (mixed to mono, resampled to ``out_sr`` as it streams):
+    (float32 chunks, (n,) or (n, C), and the number of input frames). Raises ``AudioError``
+    (``audio_too_long`` past ``max_seconds``, ``audio_undecodable`` for a corrupted body)."""
+    n_out_ch = 1 if mono else info.channels
+    stream = (
+        soxr.ResampleStream(info.sr, out_sr, n_out_ch, dtype="float32", quality="HQ")
+        if out_sr != info.sr
+        else None
+    )
+    max_in = None if max_seconds is None else int(max_seconds * info.sr) + _BLOCK
+    blocks = _sf_blocks(p) if info.decoder == "soundfile" else _av_blocks(p, info.channels)
+    chunks: list[np.ndarray] = []
+    n_in = 0
+    try:
+        for block in blocks:
+            n_in += len(block)
+            if max_in is not None and max_seconds is not None and n_in > max_in:
+                raise _err(
+                    "audio_too_long",
+                    f"longer than the limit of {max_seconds / 60:.1f} min",
+                    p,
+                )
+            x = block.mean(axis=1, dtype=np.float32) if mono else block
+            if stream is not None:
+                x = stream.resample_chunk(x if mono else np.ascontiguousarray(x))
+            chunks.append(np.asarray(x, dtype=np.float32))
+    except AudioError:
+        raise
+    except Exception as exc:  # a decoder failing mid-file: a corrupted body
+        raise _err("audio_undecodable", f"decoding failed ({_why(exc, p)})", p) from exc
+    if stream is not None:
+        tail = np.zeros((0,) if mono else (0, n_out_ch), dtype=np.float32)
+        chunks.append(np.asarray(stream.resample_chunk(tail, last=True), dtype=np.float32))
+    return chunks, n_in
+
+
 def load_audio(
     path: str | os.PathLike,
     *,
@@ -211,36 +250,7 @@ def load_audio(
             code="audio_unsupported_rate",
             field="sr",
         )
-    n_out_ch = 1 if mono else info.channels
-    stream = (
-        soxr.ResampleStream(info.sr, out_sr, n_out_ch, dtype="float32", quality="HQ")
-        if out_sr != info.sr
-        else None
-    )
-    max_in = None if max_seconds is None else int(max_seconds * info.sr) + _BLOCK
-    blocks = _sf_blocks(p) if info.decoder == "soundfile" else _av_blocks(p, info.channels)
-    chunks: list[np.ndarray] = []
-    n_in = 0
-    try:
-        for block in blocks:
-            n_in += len(block)
-            if max_in is not None and max_seconds is not None and n_in > max_in:
-                raise _err(
-                    "audio_too_long",
-                    f"longer than the limit of {max_seconds / 60:.1f} min",
-                    p,
-                )
-            x = block.mean(axis=1, dtype=np.float32) if mono else block
-            if stream is not None:
-                x = stream.resample_chunk(x if mono else np.ascontiguousarray(x))
-            chunks.append(np.asarray(x, dtype=np.float32))
-    except AudioError:
-        raise
-    except Exception as exc:  # a decoder failing mid-file: a corrupted body
-        raise _err("audio_undecodable", f"decoding failed ({_why(exc, p)})", p) from exc
-    if stream is not None:
-        tail = np.zeros((0,) if mono else (0, n_out_ch), dtype=np.float32)
-        chunks.append(np.asarray(stream.resample_chunk(tail, last=True), dtype=np.float32))
+    chunks, n_in = _decoded_chunks(p, info, out_sr, mono, max_seconds)
     if n_in == 0:
         raise _err("audio_empty", "no audio samples in the file", p)
     y = np.concatenate(chunks, axis=0)

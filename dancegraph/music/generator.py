@@ -21,12 +21,16 @@ and breaks vary between occurrences, as in real songs. Units: seconds, Hz, BPM; 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 import soundfile as sf
+
+from dancegraph.music.synth import Renderer
 
 SR = 22050
 
@@ -52,33 +56,44 @@ PROGRESSIONS: tuple[tuple[int, ...], ...] = (
 )
 
 MAJOR = np.array([0, 2, 4, 5, 7, 9, 11])
+MAJOR.flags.writeable = False
+#: a drum groove: (kick, snare, hat) eighth-note slots within the bar
+Groove = tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]
 
 #: Drum grooves as eighth-note slots within the bar, per meter: (kick, snare, hat).
-GROOVES: dict[int, dict[str, tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]]] = {
-    4: {
-        "rock": ((0, 4), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
-        "four_floor": ((0, 2, 4, 6), (2, 6), (1, 3, 5, 7)),
-        "funk": ((0, 3, 5), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
-        "half_time": ((0, 5), (4,), (0, 2, 4, 6)),
-        "disco": ((0, 2, 4, 6), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
-    },
-    3: {
-        "waltz": ((0,), (2, 4), (0, 1, 2, 3, 4, 5)),
-        "waltz_push": ((0, 3), (2, 4), (0, 2, 4)),
-        "jazz_waltz": ((0,), (4,), (0, 2, 3, 4, 5)),
-    },
-}
+GROOVES: Mapping[int, Mapping[str, Groove]] = MappingProxyType(
+    {
+        4: MappingProxyType(
+            {
+                "rock": ((0, 4), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
+                "four_floor": ((0, 2, 4, 6), (2, 6), (1, 3, 5, 7)),
+                "funk": ((0, 3, 5), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
+                "half_time": ((0, 5), (4,), (0, 2, 4, 6)),
+                "disco": ((0, 2, 4, 6), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
+            }
+        ),
+        3: MappingProxyType(
+            {
+                "waltz": ((0,), (2, 4), (0, 1, 2, 3, 4, 5)),
+                "waltz_push": ((0, 3), (2, 4), (0, 2, 4)),
+                "jazz_waltz": ((0,), (4,), (0, 2, 3, 4, 5)),
+            }
+        ),
+    }
+)
 
 #: Hard grooves: no kick on the downbeat.
-HARD_GROOVES: dict[int, dict[str, tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]]] = {
-    4: {
-        "one_drop": ((4,), (4,), (0, 1, 2, 3, 4, 5, 6, 7)),
-        "backbeat_only": ((3, 6), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
-    },
-    3: {
-        "waltz_offbeat": ((2,), (2, 4), (0, 1, 2, 3, 4, 5)),
-    },
-}
+HARD_GROOVES: Mapping[int, Mapping[str, Groove]] = MappingProxyType(
+    {
+        4: MappingProxyType(
+            {
+                "one_drop": ((4,), (4,), (0, 1, 2, 3, 4, 5, 6, 7)),
+                "backbeat_only": ((3, 6), (2, 6), (0, 1, 2, 3, 4, 5, 6, 7)),
+            }
+        ),
+        3: MappingProxyType({"waltz_offbeat": ((2,), (2, 4), (0, 1, 2, 3, 4, 5))}),
+    }
+)
 
 HARD_CASES = ("syncopated_bass", "anticipated_chords", "offbeat_drums", "drumless_sections")
 
@@ -157,72 +172,6 @@ def random_config(
 
 
 # ----------------------------------------------------------------------------------------------
-# Instruments: each returns a mono waveform (float64) starting at its onset.
-
-
-def _midi_hz(m: float) -> float:
-    return 440.0 * 2.0 ** ((m - 69) / 12)
-
-
-def _kick(sr: int) -> np.ndarray:
-    t = np.arange(int(0.35 * sr)) / sr
-    f = 48 + 110 * np.exp(-t * 35)
-    return np.sin(2 * np.pi * np.cumsum(f) / sr) * np.exp(-t * 9)
-
-
-def _snare(sr: int, rng: np.random.Generator) -> np.ndarray:
-    t = np.arange(int(0.2 * sr)) / sr
-    noise = np.diff(rng.standard_normal(len(t) + 1))  # first difference: a bright noise
-    return 0.45 * noise * np.exp(-t * 22) + 0.6 * np.sin(2 * np.pi * 190 * t) * np.exp(-t * 30)
-
-
-def _hat(sr: int, rng: np.random.Generator) -> np.ndarray:
-    t = np.arange(int(0.06 * sr)) / sr
-    noise = np.diff(rng.standard_normal(len(t) + 2), n=2)
-    return 0.25 * noise * np.exp(-t * 70)
-
-
-def _tone(sr: int, hz: float, dur: float, kind: str) -> np.ndarray:
-    """A pitched note of ``dur`` seconds: ``kind`` picks the timbre and the envelope."""
-    n = max(int(dur * sr), 16)
-    t = np.arange(n) / sr
-    if kind == "sine_bass":
-        w = np.sin(2 * np.pi * hz * t) + 0.25 * np.sin(4 * np.pi * hz * t)
-        env = np.exp(-t * 2.5)
-    elif kind == "saw_bass":
-        w = sum((np.sin(2 * np.pi * hz * k * t) / k for k in range(1, 7)), np.zeros(n))
-        env = np.exp(-t * 4)
-    elif kind == "pad":
-        w = sum((np.sin(2 * np.pi * hz * k * t) / k**1.5 for k in range(1, 5)), np.zeros(n))
-        env = np.minimum(t / 0.06, 1.0) * 0.8
-    elif kind == "piano":
-        w = sum(
-            (np.sin(2 * np.pi * hz * k * t) * np.exp(-t * k * 1.5) / k for k in range(1, 6)),
-            np.zeros(n),
-        )
-        env = np.exp(-t * 3)
-    elif kind == "organ":
-        w = (
-            np.sin(2 * np.pi * hz * t)
-            + 0.5 * np.sin(4 * np.pi * hz * t)
-            + 0.3 * np.sin(6 * np.pi * hz * t)
-        )
-        env = np.minimum(t / 0.01, 1.0) * 0.6
-    elif kind == "square_lead":
-        w = sum((np.sin(2 * np.pi * hz * k * t) / k for k in (1, 3, 5, 7)), np.zeros(n))
-        env = np.minimum(t / 0.008, 1.0) * np.exp(-t * 2)
-    elif kind == "pluck_lead":
-        w = sum((np.sin(2 * np.pi * hz * k * t) / k**2 for k in range(1, 5)), np.zeros(n))
-        env = np.exp(-t * 8)
-    else:
-        raise ValueError(f"unknown instrument {kind!r}")
-    rel = min(n, int(0.015 * sr))  # short release: no clicks at note ends
-    env = env * np.ones(n)
-    env[-rel:] *= np.linspace(1.0, 0.0, rel)
-    return w * env
-
-
-# ----------------------------------------------------------------------------------------------
 # Section content.
 
 
@@ -281,14 +230,7 @@ def _make_sections(cfg: SongConfig, rng: np.random.Generator) -> dict[str, _Sect
             if label in ("intro", "outro") or rng.random() < 0.25
             else str(rng.choice(["square_lead", "pluck_lead"]))
         )
-        melody: list[list[tuple[int, int, int]]] = []
-        motif = _melody_bars(rng, 4, eighths)
-        second = _melody_bars(rng, 4, eighths) if rng.random() < 0.6 else [list(b) for b in motif]
-        if second == motif:  # a varied answer: same rhythm, last bar changed
-            second[-1] = _melody_bars(rng, 1, eighths)[0]
-        for b in range(n_bars):
-            src = motif if (b // 4) % 2 == 0 else second
-            melody.append(src[b % 4])
+        melody = _section_melody(rng, n_bars, eighths)
         out[label] = _Section(
             label=label,
             n_bars=n_bars,
@@ -304,6 +246,18 @@ def _make_sections(cfg: SongConfig, rng: np.random.Generator) -> dict[str, _Sect
             level=float(rng.uniform(0.75, 1.0)),
         )
     return out
+
+
+def _section_melody(
+    rng: np.random.Generator, n_bars: int, eighths: int
+) -> list[list[tuple[int, int, int]]]:
+    """A section's melody, per bar: a 4-bar motif and its answer (a new one, or the motif with
+    its last bar changed), alternating every 4 bars."""
+    motif = _melody_bars(rng, 4, eighths)
+    second = _melody_bars(rng, 4, eighths) if rng.random() < 0.6 else [list(b) for b in motif]
+    if second == motif:  # a varied answer: same rhythm, last bar changed
+        second[-1] = _melody_bars(rng, 1, eighths)[0]
+    return [(motif if (b // 4) % 2 == 0 else second)[b % 4] for b in range(n_bars)]
 
 
 def _melody_bars(
@@ -358,201 +312,179 @@ def _beat_times(cfg: SongConfig, n_beats: int) -> np.ndarray:
     return cfg.lead_in_s + np.concatenate([[0.0], np.cumsum(60.0 / bpm)])
 
 
-def generate(cfg: SongConfig) -> Song:
-    """Synthesise the song of ``cfg`` and its ground truth."""
-    rng = np.random.default_rng(cfg.seed + 7919)
-    sr = cfg.sr
-    m = cfg.meter
-    sections = _make_sections(cfg, rng)
-    bar_list: list[tuple[_Section, int, int]] = []  # (section, occurrence, index in section)
+@dataclass
+class _Bar:
+    """One bar being rendered: its section, place and what it plays (break, fill), and the
+    eighth slots (4/4) that get a note or a drum onset, hi-hats aside."""
+
+    sec: _Section
+    occurrence: int
+    index: int
+    start: float  # global beat position of its downbeat
+    is_break: bool
+    is_fill: bool
+    accents: np.ndarray
+
+    def mark(self, pos: float, meter: int) -> None:
+        if meter == 4 and 0 <= pos < 4 and abs(pos * 2 - round(pos * 2)) < 1e-6:
+            self.accents[int(round(pos * 2))] = 1
+
+
+def _chord_root(sec: _Section, bar_idx: int) -> tuple[int, int]:
+    """(scale degree, semitones above the key) of the chord of bar ``bar_idx`` of ``sec``."""
+    deg = sec.progression[bar_idx % len(sec.progression)]
+    return deg, int(MAJOR[deg % 7] + sec.key_shift)
+
+
+def _drums(r: Renderer, bar: _Bar, m: int) -> None:
+    sec, start, lvl = bar.sec, bar.start, bar.sec.level
+    if sec.groove is None:
+        return
+    kicks, snares, hats = {**GROOVES[m], **HARD_GROOVES[m]}[sec.groove]
+    limit = 2 * m if not bar.is_break else 1  # a break: the downbeat hit, then silence
+    fill_from = 2 * m - 4 if bar.is_fill else 2 * m
+    for s in kicks:
+        if s < limit and s < fill_from:
+            r.add(r.kick, r.t_of(start + s / 2), 0.9 * lvl)
+            bar.mark(s / 2, m)
+    for s in snares:
+        if s < limit and s < fill_from:
+            r.add(r.snare, r.t_of(start + s / 2), 0.5 * lvl)
+            bar.mark(s / 2, m)
+    for s in hats:
+        if s < limit:
+            r.add(r.hat, r.t_of(start + s / 2), (0.5 if s % 2 else 0.7) * lvl)
+    if bar.is_fill:  # sixteenth-note snare fill over the last two beats
+        for k in range(8):
+            pos = start + m - 2 + k / 4
+            r.add(r.snare, r.t_of(pos), (0.25 + 0.05 * k) * lvl)
+            bar.mark(pos - start, m)
+
+
+def _bass(r: Renderer, bar: _Bar, m: int, key_root: int, nxt: tuple | None) -> None:
+    sec, start, lvl = bar.sec, bar.start, bar.sec.level
+    bass_midi = key_root + _chord_root(sec, bar.index)[1]
+    for pos, dur, semi in _bass_notes(sec.bass, m):
+        if bar.is_break and pos > 0:
+            continue
+        if semi == 100:  # anticipation of the next bar's root
+            if nxt is None or bar.is_break:
+                continue
+            _, nroot = _chord_root(nxt[0], nxt[2])
+            r.note(sec.bass_kind, key_root + nroot, start + m + pos, dur, 0.55 * lvl)
+            continue
+        r.note(sec.bass_kind, bass_midi + semi, start + pos, dur, 0.55 * lvl)
+        bar.mark(pos, m)
+
+
+def _chords(r: Renderer, bar: _Bar, cfg: SongConfig, key_root: int, gbar: int) -> None:
+    """A triad in the scale of the section, voiced around C4: held, struck on the beats or on
+    the offbeats, or anticipated by an eighth (hard case)."""
+    sec, start, lvl, m = bar.sec, bar.start, bar.sec.level, cfg.meter
+    deg = _chord_root(sec, bar.index)[0]
+    triad = [int(MAJOR[(deg + k) % 7] + 12 * ((deg + k) // 7)) + sec.key_shift for k in (0, 2, 4)]
+    chord_midi = [key_root + 12 + n + (12 if n < 6 else 0) for n in triad]
+    anticipate = "anticipated_chords" in cfg.hard_cases
+    if sec.comp == "sustain" or anticipate:
+        t_start = start - 0.5 if anticipate and gbar > 0 else start
+        length = (start + m - 0.5 if anticipate else start + m) - t_start
+        if bar.is_break:
+            length = min(length, 1.0)
+        for n in chord_midi:
+            r.note(sec.chords, n, t_start, length, 0.22 * lvl)
+        if not anticipate:
+            bar.mark(0.0, m)
+        elif sec.comp == "beats" and not bar.is_break:
+            # Anticipated chord, then soft stabs of it on every beat: a pulse, no downbeat.
+            for k in range(m):
+                for n in chord_midi:
+                    r.note("piano", n, start + k, 0.3, 0.12 * lvl)
+                bar.mark(float(k), m)
+        return
+    slots = range(0, 2 * m, 2) if sec.comp == "beats" else range(1, 2 * m, 2)
+    for s in slots:
+        if bar.is_break and s > 0:
+            continue
+        for n in chord_midi:
+            r.note(sec.chords, n, start + s / 2, 0.4, 0.2 * lvl)
+        bar.mark(s / 2, m)
+
+
+def _lead(r: Renderer, bar: _Bar, m: int, key_root: int) -> None:
+    sec = bar.sec
+    if sec.lead_kind is None or bar.is_break:
+        return
+    for slot, dur, d in sec.melody[bar.index]:
+        midi = key_root + 24 + int(MAJOR[d % 7]) + 12 * (d // 7) + sec.key_shift
+        r.note(sec.lead_kind, midi, bar.start + slot / 2, dur / 2 * 0.95, 0.22 * sec.level)
+        bar.mark(slot / 2, m)
+
+
+def _new_bar(
+    cfg: SongConfig, place: tuple[_Section, int, int], gbar: int, rng: np.random.Generator
+) -> _Bar:
+    """Bar ``gbar`` at ``place`` (section, occurrence, index); a section's last bar may be a
+    break (drums and notes stop after the downbeat) or get a drum fill, drawn from ``rng``."""
+    sec, o, b = place
+    last_of_section = b == sec.n_bars - 1
+    is_break = bool(
+        cfg.breaks
+        and last_of_section
+        and sec.label not in ("intro", "outro")
+        and rng.random() < 0.3
+    )
+    is_fill = bool(
+        (not is_break)
+        and cfg.fills
+        and last_of_section
+        and sec.groove is not None
+        and rng.random() < 0.5
+    )
+    return _Bar(sec, o, b, float(gbar * cfg.meter), is_break, is_fill, np.zeros(8, dtype=int))
+
+
+def _bar_truth(r: Renderer, bar: _Bar, m: int) -> dict[str, Any]:
+    sec = bar.sec
+    deg = _chord_root(sec, bar.index)[0]
+    melody = sec.melody[bar.index] if sec.lead_kind else None
+    content = (sec.label, deg, melody, bar.is_break, bar.is_fill)
+    return {
+        "start_s": round(r.t_of(bar.start), 6),
+        "end_s": round(r.t_of(bar.start + m), 6),
+        "label": sec.label,
+        "occurrence": bar.occurrence,
+        "index": bar.index,
+        "content": repr(content),
+        "break": bar.is_break,
+        "fill": bar.is_fill,
+        "drums": sec.groove is not None,
+        "accent_signature": "".join(str(int(v)) for v in bar.accents[::-1]) if m == 4 else None,
+    }
+
+
+def _bar_list(cfg: SongConfig, sections: dict[str, _Section]) -> list[tuple[_Section, int, int]]:
+    """Every bar of the form in order: (section, occurrence, index in the section)."""
+    out: list[tuple[_Section, int, int]] = []
     occ: dict[str, int] = {}
     for label in cfg.form:
         o = occ.get(label, 0)
         occ[label] = o + 1
-        for b in range(sections[label].n_bars):
-            bar_list.append((sections[label], o, b))
-    n_bars = len(bar_list)
-    n_beats = cfg.pickup_beats + n_bars * m
-    times = _beat_times(cfg, n_beats)
-    tail_s = 1.5
-    y = np.zeros(int((times[-1] + tail_s) * sr) + 1)
-    kick, snare, hat = _kick(sr), _snare(sr, rng), _hat(sr, rng)
-    sample_cache: dict[tuple, np.ndarray] = {}
+        out.extend((sections[label], o, b) for b in range(sections[label].n_bars))
+    return out
 
-    def t_of(beat: float) -> float:
-        """Global beat position (0 = first downbeat) → seconds, with swing on offbeat eighths."""
-        frac = beat - np.floor(beat)
-        if abs(frac - 0.5) < 1e-6:
-            beat = beat + cfg.swing
-        pos = beat + cfg.pickup_beats
-        return float(
-            np.interp(
-                pos,
-                np.arange(n_beats + 1),
-                times,
-                right=times[-1] + (pos - n_beats) * (times[-1] - times[-2]),
-            )
-        )
 
-    def add(wave: np.ndarray, t: float, gain: float) -> None:
-        i = int(round(t * sr))
-        if i < 0 or i >= len(y):
-            return
-        j = min(len(y), i + len(wave))
-        y[i:j] += gain * wave[: j - i]
-
-    def note(kind: str, midi: float, beat: float, dur_beats: float, gain: float) -> None:
-        t0, t1 = t_of(beat), t_of(beat + dur_beats)
-        key = (kind, round(midi, 2), round(t1 - t0, 2))
-        if key not in sample_cache:
-            sample_cache[key] = _tone(sr, _midi_hz(midi), t1 - t0, kind)
-        add(sample_cache[key], t0, gain)
-
-    def chord_root(sec: _Section, bar_idx: int) -> tuple[int, int]:
-        deg = sec.progression[bar_idx % len(sec.progression)]
-        return deg, int(MAJOR[deg % 7] + sec.key_shift)
-
-    key_root = 40 + int(rng.integers(0, 8))  # E2..B2
-    truth_bars: list[dict[str, Any]] = []
-    for gbar, (sec, o, b) in enumerate(bar_list):
-        start = float(gbar * m)
-        deg, root = chord_root(sec, b)
-        last_of_section = b == sec.n_bars - 1
-        is_break = (
-            cfg.breaks
-            and last_of_section
-            and sec.label not in ("intro", "outro")
-            and rng.random() < 0.3
-        )
-        is_fill = (
-            (not is_break)
-            and cfg.fills
-            and last_of_section
-            and sec.groove is not None
-            and rng.random() < 0.5
-        )
-        nxt = bar_list[gbar + 1] if gbar + 1 < n_bars else None
-        lvl = sec.level
-        accents = np.zeros(8, dtype=int)  # slots with a note or drum onset, hi-hats aside (4/4)
-
-        def mark(pos: float, accents: np.ndarray = accents) -> None:
-            if m == 4 and 0 <= pos < 4 and abs(pos * 2 - round(pos * 2)) < 1e-6:
-                accents[int(round(pos * 2))] = 1
-
-        # Drums.
-        if sec.groove is not None:
-            grooves = {**GROOVES[m], **HARD_GROOVES[m]}
-            kicks, snares, hats = grooves[sec.groove]
-            limit = 2 * m if not is_break else 1  # a break: the downbeat hit, then silence
-            fill_from = 2 * m - 4 if is_fill else 2 * m
-            for s in kicks:
-                if s < limit and s < fill_from:
-                    add(kick, t_of(start + s / 2), 0.9 * lvl)
-                    mark(s / 2)
-            for s in snares:
-                if s < limit and s < fill_from:
-                    add(snare, t_of(start + s / 2), 0.5 * lvl)
-                    mark(s / 2)
-            for s in hats:
-                if s < limit:
-                    add(hat, t_of(start + s / 2), (0.5 if s % 2 else 0.7) * lvl)
-            if is_fill:  # sixteenth-note snare fill over the last two beats
-                for k in range(8):
-                    pos = start + m - 2 + k / 4
-                    add(snare, t_of(pos), (0.25 + 0.05 * k) * lvl)
-                    mark(pos - start)
-        # Bass.
-        bass_midi = key_root + root
-        for pos, dur, semi in _bass_notes(sec.bass, m):
-            if is_break and pos > 0:
-                continue
-            if semi == 100:  # anticipation of the next bar's root
-                if nxt is None or is_break:
-                    continue
-                _, nroot = chord_root(nxt[0], nxt[2])
-                note(sec.bass_kind, key_root + nroot, start + m + pos, dur, 0.55 * lvl)
-                continue
-            note(sec.bass_kind, bass_midi + semi, start + pos, dur, 0.55 * lvl)
-            mark(pos)
-        # Chords: a triad in the scale of the section, voiced around C4.
-        triad = [
-            int(MAJOR[(deg + k) % 7] + 12 * ((deg + k) // 7)) + sec.key_shift for k in (0, 2, 4)
-        ]
-        chord_midi = [key_root + 12 + n + (12 if n < 6 else 0) for n in triad]
-        anticipate = "anticipated_chords" in cfg.hard_cases
-        if sec.comp == "sustain" or anticipate:
-            t_start = start - 0.5 if anticipate and gbar > 0 else start
-            length = (start + m - 0.5 if anticipate else start + m) - t_start
-            if is_break:
-                length = min(length, 1.0)
-            for n in chord_midi:
-                note(sec.chords, n, t_start, length, 0.22 * lvl)
-            if not anticipate:
-                mark(0.0)
-            elif sec.comp == "beats" and not is_break:
-                # Anticipated chord, then soft stabs of it on every beat: a pulse, no downbeat.
-                for k in range(m):
-                    for n in chord_midi:
-                        note("piano", n, start + k, 0.3, 0.12 * lvl)
-                    mark(float(k))
-        else:
-            slots = range(0, 2 * m, 2) if sec.comp == "beats" else range(1, 2 * m, 2)
-            for s in slots:
-                if is_break and s > 0:
-                    continue
-                for n in chord_midi:
-                    note(sec.chords, n, start + s / 2, 0.4, 0.2 * lvl)
-                mark(s / 2)
-        # Lead.
-        if sec.lead_kind is not None and not is_break:
-            for slot, dur, d in sec.melody[b]:
-                midi = key_root + 24 + int(MAJOR[d % 7]) + 12 * (d // 7) + sec.key_shift
-                note(sec.lead_kind, midi, start + slot / 2, dur / 2 * 0.95, 0.22 * lvl)
-                mark(slot / 2)
-        content = (
-            sec.label,
-            deg,
-            sec.melody[b] if sec.lead_kind else None,
-            bool(is_break),
-            bool(is_fill),
-        )
-        truth_bars.append(
-            {
-                "start_s": round(t_of(start), 6),
-                "end_s": round(t_of(start + m), 6),
-                "label": sec.label,
-                "occurrence": o,
-                "index": b,
-                "content": repr(content),
-                "break": bool(is_break),
-                "fill": bool(is_fill),
-                "drums": sec.groove is not None,
-                "accent_signature": "".join(str(int(v)) for v in accents[::-1]) if m == 4 else None,
-            }
-        )
-
-    # Pickup: a few lead notes (and no chord) before the first downbeat.
-    for k in range(cfg.pickup_beats):
-        note("pluck_lead", key_root + 24 + int(MAJOR[k % 7]), -cfg.pickup_beats + k, 0.9, 0.25)
-    # Outro fade: the last section fades out over its length.
-    if cfg.form[-1] == "outro":
-        t0 = truth_bars[-sections["outro"].n_bars]["start_s"]
-        i0 = int(t0 * sr)
-        y[i0:] *= np.linspace(1.0, 0.15, len(y) - i0)
-    y += 1e-4 * rng.standard_normal(len(y))  # a noise floor, as in any recording
-    y = (0.9 * y / max(np.abs(y).max(), 1e-9)).astype(np.float32)
-
-    beats = times[:-1]
-    positions = ((np.arange(n_beats) - cfg.pickup_beats) % m) + 1
-    downbeats = beats[positions == 1]
-    sections_truth = []
+def _sections_truth(
+    cfg: SongConfig, sections: dict[str, _Section], truth_bars: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The ground truth of each section occurrence of the form, in order."""
+    out = []
     gbar = 0
-    occ = {}
+    occ: dict[str, int] = {}
     for label in cfg.form:
         n = sections[label].n_bars
         o = occ.get(label, 0)
         occ[label] = o + 1
-        sections_truth.append(
+        out.append(
             {
                 "label": label,
                 "occurrence": o,
@@ -566,6 +498,47 @@ def generate(cfg: SongConfig) -> Song:
             }
         )
         gbar += n
+    return out
+
+
+def _render_bars(
+    r: Renderer, cfg: SongConfig, bars: list, key_root: int, rng: np.random.Generator
+) -> list[dict[str, Any]]:
+    """Every bar into ``r``'s buffer; returns the bars' ground truth."""
+    truth_bars = []
+    for gbar, place in enumerate(bars):
+        bar = _new_bar(cfg, place, gbar, rng)
+        nxt = bars[gbar + 1] if gbar + 1 < len(bars) else None
+        _drums(r, bar, cfg.meter)
+        _bass(r, bar, cfg.meter, key_root, nxt)
+        _chords(r, bar, cfg, key_root, gbar)
+        _lead(r, bar, cfg.meter, key_root)
+        truth_bars.append(_bar_truth(r, bar, cfg.meter))
+    # Pickup: a few lead notes (and no chord) before the first downbeat.
+    for k in range(cfg.pickup_beats):
+        r.note("pluck_lead", key_root + 24 + int(MAJOR[k % 7]), -cfg.pickup_beats + k, 0.9, 0.25)
+    return truth_bars
+
+
+def generate(cfg: SongConfig) -> Song:
+    """Synthesise the song of ``cfg`` and its ground truth."""
+    rng = np.random.default_rng(cfg.seed + 7919)
+    sr, m = cfg.sr, cfg.meter
+    sections = _make_sections(cfg, rng)
+    bars = _bar_list(cfg, sections)
+    n_beats = cfg.pickup_beats + len(bars) * m
+    times = _beat_times(cfg, n_beats)
+    r = Renderer(sr, times, cfg.pickup_beats, cfg.swing, rng)
+    key_root = 40 + int(rng.integers(0, 8))  # E2..B2
+    truth_bars = _render_bars(r, cfg, bars, key_root, rng)
+    y = r.y
+    if cfg.form[-1] == "outro":  # the last section fades out over its length
+        i0 = int(truth_bars[-sections["outro"].n_bars]["start_s"] * sr)
+        y[i0:] *= np.linspace(1.0, 0.15, len(y) - i0)
+    y += 1e-4 * rng.standard_normal(len(y))  # a noise floor, as in any recording
+    y = (0.9 * y / max(np.abs(y).max(), 1e-9)).astype(np.float32)
+    beats = times[:-1]
+    positions = ((np.arange(n_beats) - cfg.pickup_beats) % m) + 1
     truth = {
         "config": asdict(cfg),
         "sr": sr,
@@ -574,9 +547,9 @@ def generate(cfg: SongConfig) -> Song:
         "tempo_bpm": float(60.0 / np.median(np.diff(times))),
         "beats": [round(float(t), 6) for t in beats],
         "beat_positions": [int(p) for p in positions],
-        "downbeats": [round(float(t), 6) for t in downbeats],
+        "downbeats": [round(float(t), 6) for t in beats[positions == 1]],
         "bars": truth_bars,
-        "sections": sections_truth,
+        "sections": _sections_truth(cfg, sections, truth_bars),
         "hard_cases": list(cfg.hard_cases),
     }
     return Song(y=y, sr=sr, truth=truth)

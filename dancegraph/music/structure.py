@@ -278,26 +278,15 @@ def label_segments(
     return out
 
 
-def merge_units(
-    bounds: list[int],
+def _pair_kinds(
+    segs: list[tuple[int, int]],
     labels: list[str],
     unit: int,
     novelty: np.ndarray,
-    dt: np.ndarray | None = None,
-) -> list[int]:
-    """Join pairs of adjacent ``unit``-bar phrases into one ``2 * unit``-bar phrase.
-
-    The halves of an 8-bar section often repeat a 4-bar pattern, or differ only in melody, and
-    the novelty sees a boundary between them. A pair of labels (X, Y) is joined when X == Y and
-    X never stands alone as a single unit inside the song (else ``A A`` are two 4-bar
-    sections), or
-    when every unit-length X is followed by a Y and every unit-length Y preceded by an X (once
-    or more often), and the two sound alike (mean timbre distance ``dt`` below
-    ``PAIR_TIMBRE_THRESHOLD``: the same instruments, another melody or chord turn). Pair kinds are taken weakest internal boundary first (mean novelty at the
-    joins; alike pairs first), and every occurrence of a kind is joined at once, so repeats
-    stay parallel.
-    """
-    segs = list(zip(bounds[:-1], bounds[1:], strict=True))
+    dt: np.ndarray | None,
+) -> list[tuple[float, list[int]]]:
+    """The kinds of adjacent unit-phrase pairs that may be joined (see :func:`merge_units`):
+    (score, the indices of each pair's first phrase), the weakest internal boundary lowest."""
     n = len(segs)
     is_unit = [e - s == unit for s, e in segs]
     occ: dict[tuple[str, str], list[int]] = {}
@@ -334,6 +323,31 @@ def merge_units(
                     continue
         score = float(np.mean([novelty[segs[i + 1][0]] for i in where])) - (1.0 if x == y else 0.0)
         kinds.append((score, where))
+    return kinds
+
+
+def merge_units(
+    bounds: list[int],
+    labels: list[str],
+    unit: int,
+    novelty: np.ndarray,
+    dt: np.ndarray | None = None,
+) -> list[int]:
+    """Join pairs of adjacent ``unit``-bar phrases into one ``2 * unit``-bar phrase.
+
+    The halves of an 8-bar section often repeat a 4-bar pattern, or differ only in melody, and
+    the novelty sees a boundary between them. A pair of labels (X, Y) is joined when X == Y and
+    X never stands alone as a single unit inside the song (else ``A A`` are two 4-bar
+    sections), or
+    when every unit-length X is followed by a Y and every unit-length Y preceded by an X (once
+    or more often), and the two sound alike (mean timbre distance ``dt`` below
+    ``PAIR_TIMBRE_THRESHOLD``: the same instruments, another melody or chord turn). Pair kinds are taken weakest internal boundary first (mean novelty at the
+    joins; alike pairs first), and every occurrence of a kind is joined at once, so repeats
+    stay parallel.
+    """
+    segs = list(zip(bounds[:-1], bounds[1:], strict=True))
+    n = len(segs)
+    kinds = _pair_kinds(segs, labels, unit, novelty, dt)
     taken = [False] * n
     joined = set()
     for _, where in sorted(kinds, key=lambda k: k[0]):

@@ -7,8 +7,8 @@ or onto a dotted (3:2) pulse; the alternatives are reported with their evidence,
 confidence drops when another level is about as well supported.
 
 Tempo octave (:func:`dance_octave`): which of x1/2, x1, x2 of the tracked tempo a dancer would
-count as the beat. A log-normal dance-tempo prior centred on 112 BPM (``DANCE_PRIOR``: 90-140
-BPM lie within one standard deviation, 0.35 octave) is weighed against each level's pulse
+count as the beat. A log-normal dance-tempo prior centred on 112 BPM (:class:`~dancegraph.music.
+params.TempoParams`: 90-140 BPM lie within one standard deviation, 0.35 octave) is weighed against each level's pulse
 salience in the onset envelope; the decision and its confidence (the posterior of the chosen
 level) are reported (``TempoEstimate.octave``, and a ``tempo_octave`` warning when the decision
 is not the tracked level). The beats and bars stay on the tracked level: whether 176 BPM is
@@ -24,8 +24,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import median_filter
 
+from dancegraph.music.params import TempoParams
+
 __all__ = [
-    "DANCE_PRIOR",
     "RELATIONS",
     "TempoEstimate",
     "dance_octave",
@@ -35,10 +36,13 @@ __all__ = [
     "tempo_from_beats",
 ]
 
-# metrical levels checked against the tracked tempo: name -> tempo ratio
-RELATIONS: dict[str, float] = {"x2": 2.0, "x1/2": 0.5, "x3/2": 1.5, "x2/3": 2.0 / 3.0}
-#: dance-tempo prior on the counted beat: log-normal, centre (BPM) and spread (octaves)
-DANCE_PRIOR = {"center_bpm": 112.0, "sigma_octaves": 0.35}
+#: metrical levels checked against the tracked tempo: (name, tempo ratio)
+RELATIONS: tuple[tuple[str, float], ...] = (
+    ("x2", 2.0),
+    ("x1/2", 0.5),
+    ("x3/2", 1.5),
+    ("x2/3", 2.0 / 3.0),
+)
 
 
 @dataclass
@@ -82,12 +86,15 @@ def tempo_from_beats(beats: np.ndarray) -> tuple[float, float]:
     return 60.0 / mean, float(regular.mean())
 
 
-def metrical_relation(a_bpm: float, b_bpm: float, tol: float = 0.06) -> str | None:
-    """The relation of tempo ``b`` to ``a``: 'x1', 'x2', 'x1/2', 'x3/2', 'x2/3', or None."""
+def metrical_relation(
+    a_bpm: float, b_bpm: float, tol: float = TempoParams.relation_tol
+) -> str | None:
+    """The relation of tempo ``b`` to ``a`` within the relative ``tol``: 'x1', 'x2', 'x1/2',
+    'x3/2', 'x2/3', or None."""
     if a_bpm <= 0 or b_bpm <= 0:
         return None
     r = b_bpm / a_bpm
-    for name, ratio in {"x1": 1.0, **RELATIONS}.items():
+    for name, ratio in (("x1", 1.0), *RELATIONS):
         if abs(r / ratio - 1.0) <= tol:
             return name
     return None
@@ -113,16 +120,19 @@ def pulse_salience(onset_env: np.ndarray, fps: float, bpm: float) -> float:
     return max(best, 0.0)
 
 
-def dance_octave(bpm: float, salience: dict[str, float]) -> dict:
+def dance_octave(
+    bpm: float, salience: dict[str, float], params: TempoParams = TempoParams()
+) -> dict:
     """The dance-tempo level among x1/2, x1 and x2 of ``bpm``: ``{relation, bpm, confidence}``.
 
     ``salience``: pulse salience (0..1) per relation ('x1' required; 'x1/2', 'x2' if known).
-    Score of a level = log prior (:data:`DANCE_PRIOR`) + log salience relative to the best
-    level; confidence = the chosen level's share of the normalised posterior.
+    Score of a level = log prior (``params``: log-normal, ``dance_center_bpm``,
+    ``dance_sigma_octaves``) + log salience relative to the best level; confidence = the chosen
+    level's share of the normalised posterior.
     """
     if bpm <= 0:
         return {"relation": "x1", "bpm": 0.0, "confidence": 0.0}
-    c, sd = np.log2(DANCE_PRIOR["center_bpm"]), DANCE_PRIOR["sigma_octaves"]
+    c, sd = np.log2(params.dance_center_bpm), params.dance_sigma_octaves
     top = max(max(salience.values()), 1e-6)
     names, scores = [], []
     for name, ratio in (("x1/2", 0.5), ("x1", 1.0), ("x2", 2.0)):
@@ -139,12 +149,16 @@ def dance_octave(bpm: float, salience: dict[str, float]) -> dict:
 
 
 def estimate_tempo(
-    beats: np.ndarray, onset_env: np.ndarray | None = None, fps: float = 50.0
+    beats: np.ndarray,
+    onset_env: np.ndarray | None = None,
+    fps: float = 50.0,
+    params: TempoParams = TempoParams(),
 ) -> TempoEstimate:
     """Tempo and confidence of a beat track (K,) s, checked against an onset envelope (T,) at ``fps``.
 
-    Confidence = regularity of the beat intervals, scaled down when a related metrical level
-    (x2, x1/2, x3/2, x2/3) has a clearly stronger pulse in the onset envelope than the tracked one.
+    Confidence = regularity of the beat intervals, scaled by ``params.ambiguous_confidence``
+    when a related metrical level (x3/2, x2/3; x1/2) has a clearly stronger pulse in the onset
+    envelope than the tracked one (``params.dotted_competes``; ``params.half_competes``).
     """
     bpm, regularity = tempo_from_beats(beats)
     if bpm <= 0:
@@ -153,7 +167,7 @@ def estimate_tempo(
     if onset_env is None:
         return est
     est.salience = pulse_salience(onset_env, fps, bpm)
-    for name, ratio in RELATIONS.items():
+    for name, ratio in RELATIONS:
         alt = bpm * ratio
         if not 30.0 <= alt <= 300.0:
             continue
@@ -165,12 +179,15 @@ def estimate_tempo(
     competing = [
         a
         for a in est.alternatives
-        if (a["relation"] in ("x3/2", "x2/3") and a["salience"] > 1.1 * est.salience)
-        or (a["relation"] == "x1/2" and a["salience"] > 1.5 * est.salience)
+        if (
+            a["relation"] in ("x3/2", "x2/3")
+            and a["salience"] > params.dotted_competes * est.salience
+        )
+        or (a["relation"] == "x1/2" and a["salience"] > params.half_competes * est.salience)
     ]
     if competing:
         strongest = max(competing, key=lambda a: a["salience"])
-        est.confidence *= 0.5
+        est.confidence *= params.ambiguous_confidence
         est.warnings.append(
             f"tempo_ambiguous: the onset pulse at {strongest['bpm']:.1f} BPM "
             f"({strongest['relation']} of {bpm:.1f}) is stronger than the tracked beat's"
@@ -178,7 +195,7 @@ def estimate_tempo(
     by_level = {"x1": est.salience} | {
         a["relation"]: a["salience"] for a in est.alternatives if a["relation"] in ("x2", "x1/2")
     }
-    est.octave = dance_octave(bpm, by_level)
+    est.octave = dance_octave(bpm, by_level, params)
     if est.octave["relation"] != "x1":
         est.warnings.append(
             f"tempo_octave: a dancer would likely count {est.octave['bpm']:.1f} BPM "

@@ -22,6 +22,7 @@ import sys
 import tempfile
 import zipfile
 from pathlib import Path
+from types import MappingProxyType
 
 from dancegraph.errors import ModelFileError
 from dancegraph.store import file_sha256
@@ -29,11 +30,13 @@ from dancegraph.store import file_sha256
 BEATNET_VERSION = "1.1.3"
 WHEEL_NAME = f"BeatNet-{BEATNET_VERSION}-py3-none-any.whl"
 WHEEL_SHA256 = "1ecfa17bdcbe899975a88bdb6efebd6970d846a4f3b6cfd5c6f320647c641c7e"
-FILE_SHA256 = {
-    "model_1_weights.pt": "619091bc317ca3e83b45591d46f6de3d5a41588bcb39fe9fe7be30cffa6aca84",
-    "model_2_weights.pt": "5878a18c079fa0b0139879b14ed2b5b7595faef8c3d16210aed141fd00fa2d58",
-    "model_3_weights.pt": "0c52a074ea38e8cb4a760ecfa3747c9cf91a1e3cd19f238eed80b0de763989ca",
-}
+FILE_SHA256 = MappingProxyType(
+    {
+        "model_1_weights.pt": "619091bc317ca3e83b45591d46f6de3d5a41588bcb39fe9fe7be30cffa6aca84",
+        "model_2_weights.pt": "5878a18c079fa0b0139879b14ed2b5b7595faef8c3d16210aed141fd00fa2d58",
+        "model_3_weights.pt": "0c52a074ea38e8cb4a760ecfa3747c9cf91a1e3cd19f238eed80b0de763989ca",
+    }
+)
 LICENSE_NAME = "BEATNET_LICENSE.txt"
 ATTRIBUTION = "BeatNet (M. Heydari et al., ISMIR 2021), CC BY 4.0"
 

@@ -34,6 +34,7 @@ from pathlib import Path
 from dancegraph.errors import AudioError, DanceGraphError
 from dancegraph.graph.search import SearchResult
 from dancegraph.music.analysis import MusicAnalysis, analysis_version
+from dancegraph.music.params import AnalysisParams
 from dancegraph.spec import Spec, parse_spec
 from dancegraph.store import ObjectStore
 from services import jobs
@@ -64,16 +65,24 @@ def object_store(settings: Settings | None = None) -> ObjectStore:
     return settings_store(settings or get_settings())
 
 
-def analysis_key(audio_sha256: str, tempo_range: tuple[float, float] | None = None) -> str:
+def analysis_key(
+    audio_sha256: str,
+    tempo_range: tuple[float, float] | None = None,
+    params: AnalysisParams | None = None,
+) -> str:
     """Object-store key of the cached analysis of the song with this sha256:
     ``analysis/<version>/<sha256>.json``, or ``-<lo>-<hi>bpm.json`` for the analysis counted in
-    a style tempo range; ``<version>`` is ``music.analysis.analysis_version()``, so analyses made
-    by other analysis code or models are never read back."""
+    a style tempo range, and ``-p<digest>`` before ``.json`` for a spec's analysis parameters
+    other than the defaults; ``<version>`` is ``music.analysis.analysis_version()``, so analyses
+    made by other analysis code or models are never read back."""
     folder = f"analysis/{analysis_version()}"
-    if tempo_range is None:
-        return f"{folder}/{audio_sha256}.json"
-    lo, hi = tempo_range
-    return f"{folder}/{audio_sha256}-{lo:g}-{hi:g}bpm.json"
+    name = audio_sha256
+    if tempo_range is not None:
+        lo, hi = tempo_range
+        name += f"-{lo:g}-{hi:g}bpm"
+    if params is not None and params != AnalysisParams():
+        name += f"-p{params.digest()}"
+    return f"{folder}/{name}.json"
 
 
 # --- stages ---------------------------------------------------------------------------------
@@ -85,13 +94,14 @@ def analyze(
     audio_sha256: str,
     filename: str | None = None,
     tempo_range: tuple[float, float] | None = None,
+    params: AnalysisParams | None = None,
 ) -> MusicAnalysis:
     """The song's analysis, computed once per sha256 and ``tempo_range`` (a dance style's (lo,
     hi) BPM: the bars count the octave that fits it, ``music.analysis.analyze``) and cached as
     ``MusicAnalysis.to_dict()``; always returned as read back from that JSON, so a first run and
     a re-run see the same numbers. An audio error names ``filename`` (the name the client
     uploaded), not the blob."""
-    key = analysis_key(audio_sha256, tempo_range)
+    key = analysis_key(audio_sha256, tempo_range, params)
     if store.exists(key):
         data = json.loads(store.get_bytes(key))
     else:
@@ -99,7 +109,7 @@ def analyze(
 
         path = store.local_path(audio_key)
         try:
-            data = analyze_music(str(path), tempo_range=tempo_range).to_dict()
+            data = analyze_music(str(path), tempo_range=tempo_range, params=params).to_dict()
         except AudioError as exc:
             if filename:
                 exc.message = exc.message.replace(path.name, filename)
@@ -386,7 +396,10 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         state.progress(job_id, "analyze", STAGES["analyze"])
         spec, library = pin_dataset(store, job, spec)
         tempo_range = style_tempo_range(store, spec, library["graph_version"])
-        analysis = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename, tempo_range)
+        analysis = analyze(
+            store, job.audio_key, job.audio_sha256, job.audio_filename, tempo_range,
+            spec.analysis_params(),
+        )  # fmt: skip
         beat.check()
         with session_scope() as session:
             _set_summary(session, job_id, analysis)

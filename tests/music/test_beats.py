@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,33 +16,37 @@ import pytest
 from dancegraph.errors import AudioError
 from dancegraph.music import bargroup, barpointer, beatnet
 from dancegraph.music.analysis import four_beat_bars
-from dancegraph.music.beats import (
-    BEATNET_1_1_3,
-    DEFAULT_STEPS,
-    NO_BEAT,
-    SLIP,
-    STEPS,
-    BeatParams,
-    _spectral,
-    _usable,
-    beat_evidence,
-    beat_f_measure,
+from dancegraph.music.beats import track_beats, track_evidence
+from dancegraph.music.decode import load_audio
+from dancegraph.music.evidence import beat_evidence, spectral
+from dancegraph.music.generator import generate, random_config
+from dancegraph.music.levels import (
     dotted_pulse,
+    octave_switch,
+    split_beats,
+    subdivision_strength,
+    within_sound,
+)
+from dancegraph.music.mends import (
     find_slips,
     half_beat_parity,
     mend_half_beat_slips,
     mend_off_beat_grid,
     mend_swing_off_beats,
-    octave_switch,
-    speech_evidence,
-    split_beats,
-    subdivision_strength,
-    track_beats,
-    track_evidence,
-    within_sound,
 )
-from dancegraph.music.decode import load_audio
-from dancegraph.music.generator import generate, random_config
+from dancegraph.music.nobeat import speech_evidence, usable
+from dancegraph.music.params import (
+    BEATNET_1_1_3,
+    DEFAULT_STEPS,
+    STEP_NAMES,
+    AnalysisParams,
+    GroupParams,
+    NoBeatParams,
+    SlipParams,
+    SpeechParams,
+)
+from dancegraph.music.signal import beat_f_measure
+from dancegraph.music.steps import STEPS
 from dancegraph.music.tempo import (
     dance_octave,
     estimate_tempo,
@@ -215,7 +220,7 @@ def test_sections_tracked_on_the_off_beats_are_moved_back(seed: int) -> None:
 def test_normal_songs_keep_or_regain_their_beat_phase(seed: int, warned: bool) -> None:
     """Normal generated songs where the off-beat mends used to go wrong, fixed by the slip
     section's own threshold, the tempo check on the other tracker's vote and the whole-grid
-    threshold (``beats.SLIP``, ``beats.OFF_BEAT``)."""
+    threshold (``SlipParams``, ``OffBeatParams``)."""
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed)
@@ -262,7 +267,9 @@ def test_grid_at_twice_the_tempo_is_halved(seed: int, hard: bool, tempo: float |
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, hard=hard, **({"tempo_bpm": tempo} if tempo else {}))
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("halve"))  # off by default
+    res = track_beats(
+        song.y, song.sr, params=AnalysisParams().with_steps("halve")
+    )  # off by default
     assert any(w.startswith("beats_halved") for w in res.warnings)
     # the decoder's downbeats were among the eighths: moving off them is no news to report
     assert not any(w.startswith("downbeat_rephased") for w in res.warnings)
@@ -290,7 +297,7 @@ def test_grid_at_half_the_tempo_is_split(seed: int, tempo: float | None, meter: 
 
     song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
     steps = ("halve", "split") if seed == 23002 else ("split",)  # both off by default
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps(*steps))
+    res = track_beats(song.y, song.sr, params=AnalysisParams().with_steps(*steps))
     assert any(w.startswith("beats_split") for w in res.warnings)
     assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
     assert res.meter == song.truth["meter"] == meter
@@ -313,7 +320,7 @@ def test_slow_song_is_not_split(seed: int, meter: int, min_downbeat_f: float) ->
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed)
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("split", "swing"))
+    res = track_beats(song.y, song.sr, params=AnalysisParams().with_steps("split", "swing"))
     assert not any(w.startswith("beats_split") for w in res.warnings)
     assert res.meter == song.truth["meter"] == meter
     assert abs(res.tempo_bpm / song.truth["tempo_bpm"] - 1.0) < 0.05
@@ -365,7 +372,7 @@ def test_beats_stop_where_the_music_stops() -> None:
     # without the votes the tracker is BeatNet's own: nothing dropped
     assert (
         "beats_outside_sound"
-        not in track_beats(song.y, song.sr, params=BeatParams(steps=frozenset())).evidence
+        not in track_beats(song.y, song.sr, params=AnalysisParams(steps=frozenset())).evidence
     )
 
 
@@ -421,7 +428,7 @@ def test_halving_keeps_the_half_that_forms_bars(seed: int, tempo: float | None) 
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, **({"tempo_bpm": tempo} if tempo else {}))
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("halve"))
+    res = track_beats(song.y, song.sr, params=AnalysisParams().with_steps("halve"))
     assert any(w.startswith("beats_halved") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
@@ -450,7 +457,7 @@ def test_a_kick_on_every_beat_is_counted_at_its_tempo() -> None:
     assert abs(res.tempo_bpm - 120.0) < 1.0
     assert not any(w.startswith("beats_halved") for w in res.warnings)
     assert len(four_beat_bars(res.beats, res.beat_positions, res.meter, 10.0)[0]) >= 4
-    halved = track_beats(y, SR, params=BeatParams().with_steps("halve"))
+    halved = track_beats(y, SR, params=AnalysisParams().with_steps("halve"))
     assert any(w.startswith("beats_halved") for w in halved.warnings)
     assert np.array_equal(halved.beat_positions, (np.arange(len(halved.beats)) - np.argmax(
         halved.beat_positions == 1)) % 4 + 1)  # fmt: skip
@@ -471,7 +478,7 @@ def test_snare_curve_hears_noise_bursts_not_notes() -> None:
         y[int(at * sr) : int(at * sr) + len(t)] += 0.3 * note.astype(np.float32)
     for at in noise_at:
         y[int(at * sr) : int(at * sr) + len(t)] += 0.3 * noise.astype(np.float32)
-    spec = _spectral(y)
+    spec = spectral(y)
 
     def peaks(c: np.ndarray, at: np.ndarray) -> float:
         return float(np.mean([c[int(x * 50) - 1 : int(x * 50) + 4].max() for x in at]))
@@ -517,7 +524,7 @@ def test_bars_clearer_in_four_keep_or_bring_a_four_four_song_to_four(
 
     song = generate_song(seed, hard=True, **({"tempo_bpm": tempo} if tempo else {}))
     res = track_beats(
-        song.y, song.sr, params=BeatParams().with_steps("swing", "off_beat_grid")
+        song.y, song.sr, params=AnalysisParams().with_steps("swing", "off_beat_grid")
     )  # as measured
     assert res.meter == 4
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= min_downbeat_f
@@ -548,7 +555,7 @@ def test_grid_on_a_dotted_pulse_is_decoded_again_at_the_song_s(seed: int, bpm: f
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, hard=True)
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("swing"))  # 33002 swings
+    res = track_beats(song.y, song.sr, params=AnalysisParams().with_steps("swing"))  # 33002 swings
     assert any(w.startswith("beat_level_corrected") for w in res.warnings)
     assert abs(res.tempo_bpm / bpm - 1.0) < 0.01 and res.meter == 4
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
@@ -577,7 +584,7 @@ def test_grid_that_switches_tempo_octave_is_decoded_at_one_level(
 
     song = generate_song(seed, hard=hard, tempo_bpm=tempo)
     res = track_beats(
-        song.y, song.sr, params=BeatParams().with_steps("one_octave", "halve", "split")
+        song.y, song.sr, params=AnalysisParams().with_steps("one_octave", "halve", "split")
     )  # off by default
     assert any(w.startswith("beat_level_unified") for w in res.warnings)
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
@@ -657,7 +664,7 @@ def test_hard_song_on_the_off_beats_all_song_long_is_moved_onto_the_beat() -> No
 
     song = generate_song(6045, hard=True)
     res = track_beats(
-        song.y, song.sr, params=BeatParams().with_steps("off_beat_grid")
+        song.y, song.sr, params=AnalysisParams().with_steps("off_beat_grid")
     )  # off by default
     assert any(w.startswith("beat_phase_shifted") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
@@ -674,7 +681,7 @@ def test_mend_half_beat_slips_needs_the_other_trackers_agreement() -> None:
     tracked[72:76] += np.linspace(0.2, 0.05, 4)
     # the notes start half a beat after the section's beats, faintly (below the bar at which
     # the gain alone moves a section)
-    faint = 0.5 * SLIP["min_gain"]
+    faint = 0.5 * SlipParams().min_gain
     gain = np.where(np.abs(tracked - np.round(tracked / period) * period) < 0.05, -faint, faint)
     mended, moved = mend_half_beat_slips(tracked, truth, gain)
     assert moved > 20
@@ -712,7 +719,7 @@ def test_mend_half_beat_slips_moves_the_side_the_notes_start_after() -> None:
     # a faint one does not
     alone, moved = mend_half_beat_slips(tracked, tracked, gain)
     assert moved > 60 and beat_f_measure(truth, alone) > 0.9
-    kept, moved = mend_half_beat_slips(tracked, tracked, 0.5 * SLIP["min_gain"] * gain)
+    kept, moved = mend_half_beat_slips(tracked, tracked, 0.5 * SlipParams().min_gain * gain)
     assert moved == 0 and np.array_equal(kept, tracked)
     # a clear gain on one section, but both sides' notes start about as late after their
     # beats: which side is off is not clear, nothing moves without the other tracker
@@ -743,7 +750,7 @@ def test_mend_half_beat_slips_moves_an_intro_one_slip_from_the_body() -> None:
     # keeps the pulse
     intro = np.arange(len(truth)) < 16
     clear, faint = 0.9, 0.4  # a generated body off the beat: 0.81-1.75; on it: up to 0.45
-    assert faint > SLIP["min_gain"] and faint < SLIP["body_min_gain"] < clear
+    assert faint > SlipParams().min_gain and faint < SlipParams().body_min_gain < clear
     for body_gain, intro_gain, intro_moves in ((-1.8, -2.1, True), (clear, 0.0, False),
                                                (faint, 0.0, True)):  # fmt: skip
         tracked = truth.copy()
@@ -863,7 +870,7 @@ def test_songs_whose_frame_rounded_grid_looked_slipped(
     from dancegraph.music.generator import generate_song
 
     song = generate_song(seed, hard=hard, tempo_bpm=tempo)
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("swing"))  # 24002 swings
+    res = track_beats(song.y, song.sr, params=AnalysisParams().with_steps("swing"))  # 24002 swings
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.95
 
@@ -875,7 +882,9 @@ def test_slow_swung_song_with_sections_on_the_off_beats_is_mended() -> None:
     from dancegraph.music.generator import generate_song
 
     song = generate_song(17009, tempo_bpm=83.0)
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("swing"))  # off by default
+    res = track_beats(
+        song.y, song.sr, params=AnalysisParams().with_steps("swing")
+    )  # off by default
     assert any(w.startswith("beat_swing_mended") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.9
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.9
@@ -889,7 +898,9 @@ def test_swung_hard_song_tracked_on_the_off_beats_is_mended() -> None:
     cfg = random_config(5012, hard=True)
     cfg.swing = 0.156
     song = generate(cfg)
-    res = track_beats(song.y, song.sr, params=BeatParams().with_steps("swing"))  # off by default
+    res = track_beats(
+        song.y, song.sr, params=AnalysisParams().with_steps("swing")
+    )  # off by default
     assert any(w.startswith("beat_swing_mended") for w in res.warnings)
     assert beat_f_measure(song.truth["beats"], res.beats) >= 0.85
     assert beat_f_measure(song.truth["downbeats"], res.downbeats) >= 0.8
@@ -907,7 +918,10 @@ def test_bar_count_restarts_cheaply_where_the_beat_grid_glitches() -> None:
     e[kept % 4 == 0] += 1.0
     glitch = bargroup.grid_glitches(frames)
     assert glitch[66] and glitch[67] and not glitch[:60].any() and not glitch[75:].any()
-    for costs, after_ok in ((bargroup.restart_costs(frames), True), (bargroup.LOG_RESTART, False)):
+    for costs, after_ok in (
+        (bargroup.restart_costs(frames), True),
+        (GroupParams().log_restart, False),
+    ):
         pos = bargroup.phase_viterbi(e, 4, costs)
         assert np.all(pos[:64][kept[:64] % 4 == 0] == 1)
         assert bool(np.all(pos[70:][kept[70:] % 4 == 0] == 1)) is after_ok
@@ -931,7 +945,7 @@ def test_meter_distances_find_the_repeating_bar_length() -> None:
         pattern = rng.normal(size=(meter, 8 + 12))  # rhythm slots, then chroma
         x = np.tile(pattern, (40, 1)) + rng.normal(0, 0.3, (40 * meter, 8 + 12))
         d = bargroup.meter_distances(x)
-        assert d[meter] < d[7 - meter] - bargroup.METER_MARGIN
+        assert d[meter] < d[7 - meter] - GroupParams().meter_margin
     assert all(np.isnan(v) for v in bargroup.meter_distances(x[:10]).values())
 
 
@@ -944,7 +958,7 @@ def test_meter_distances_compare_chords_only_across_bar_lines() -> None:
     rhythm = 0.3 * np.tile(rng.normal(size=(4, 8)), (bars, 1)) + rng.normal(size=(4 * bars, 8))
     chroma = np.repeat(rng.normal(size=(bars, 12)), 4, axis=0)
     x = np.hstack([rhythm, chroma])
-    assert bargroup.lag_distance(x, 3) < bargroup.lag_distance(x, 4) - bargroup.METER_MARGIN
+    assert bargroup.lag_distance(x, 3) < bargroup.lag_distance(x, 4) - GroupParams().meter_margin
     d = bargroup.meter_distances(x)
     assert d[4] < d[3]
 
@@ -1161,12 +1175,12 @@ def test_speech_evidence_tells_held_chords_from_spoken_syllables() -> None:
     phase = 2 * np.pi * np.cumsum(roots) / SR
     chords = sum(np.sin(r * phase) for r in (1.0, 1.26, 1.5)).astype(np.float32) * 0.2
     spoken = _spoken(12.0, seed=4)
-    pauses, held = speech_evidence(_spectral(spoken))
-    assert pauses >= NO_BEAT["speech_pauses"] and held < NO_BEAT["speech_chroma"]
-    pauses, held = speech_evidence(_spectral(chords))
+    pauses, held = speech_evidence(spectral(spoken))
+    assert pauses >= SpeechParams().min_pauses and held < SpeechParams().max_chroma
+    pauses, held = speech_evidence(spectral(chords))
     assert pauses < 0.02 and held > 0.9
-    pauses, held = speech_evidence(_spectral(chords + 0.5 * spoken))
-    assert pauses < NO_BEAT["speech_pauses"] and held >= NO_BEAT["speech_chroma"]
+    pauses, held = speech_evidence(spectral(chords + 0.5 * spoken))
+    assert pauses < SpeechParams().min_pauses and held >= SpeechParams().max_chroma
 
 
 def test_a_network_firing_every_other_beat_still_has_a_pulse() -> None:
@@ -1179,14 +1193,14 @@ def test_a_network_firing_every_other_beat_still_has_a_pulse() -> None:
     act = np.zeros((1510, 2))
     act[frames[::2], 0] = 0.9  # every other beat
     t = np.arange(12 * SR) / SR
-    chords = _spectral((0.2 * np.sin(2 * np.pi * 220 * t)).astype(np.float32))
+    chords = spectral((0.2 * np.sin(2 * np.pi * 220 * t)).astype(np.float32))
     evidence = {"active_s": 1500 / fps}
-    ok, why = _usable(frames / fps, act, chords, evidence, "beatnet")
+    ok, why = usable(frames / fps, act, chords, evidence, "beatnet")
     assert ok and why, why  # usable, as a weak pulse
     assert evidence["beatnet_salience"] < 0.05 and evidence["beatnet_level_salience"] > 0.5
     flat = np.full((1510, 2), 0.3)
     flat[frames[::2], 0] = 0.45
-    assert not _usable(frames / fps, flat, chords, {"active_s": 30.0}, "beatnet")[0]
+    assert not usable(frames / fps, flat, chords, {"active_s": 30.0}, "beatnet")[0]
 
 
 def test_silence_before_a_recording_keeps_its_bars(cc_music_dir: Path) -> None:
@@ -1210,9 +1224,7 @@ def test_silence_before_a_recording_keeps_its_bars(cc_music_dir: Path) -> None:
     assert later.meter == plain.meter == 4
 
 
-def test_a_faint_pulse_in_speech_is_refused(
-    nonmusic_dir: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_faint_pulse_in_speech_is_refused(nonmusic_dir: Path) -> None:
     """A LibriSpeech reading whose syllables BeatNet reads as a faint pulse (the pulse floor
     lowered so that it is over it, as jfk's speech is) is refused as speech; without the
     speech test the same clip would get beats with a ``weak_pulse`` warning."""
@@ -1221,12 +1233,12 @@ def test_a_faint_pulse_in_speech_is_refused(
         pytest.skip(f"{path} not found (set DANCEGRAPH_SHARED)")
     y, sr = load_audio(path)
     ev = beat_evidence(y, sr)
-    monkeypatch.setitem(NO_BEAT["beatnet"], "min_strength", 0.1)
+    lowered = NoBeatParams(beatnet=replace(NoBeatParams().beatnet, min_strength=0.1))
     with pytest.raises(AudioError) as err:
-        track_evidence(ev)
+        track_evidence(ev, AnalysisParams(no_beat=lowered))
     assert err.value.code == "no_beat" and "speech-like" in err.value.message
-    monkeypatch.setitem(NO_BEAT, "speech_pauses", 1.01)
-    res = track_evidence(ev)
+    no_speech_test = replace(lowered, speech=SpeechParams(min_pauses=1.01))
+    res = track_evidence(ev, AnalysisParams(no_beat=no_speech_test))
     assert any(w.startswith("weak_pulse") for w in res.warnings)
     assert res.evidence["pause_share"] >= 0.14 and res.evidence["chroma_persistence"] < 0.7
 
@@ -1269,13 +1281,14 @@ def test_short_and_malformed_arrays() -> None:
 
 def test_steps_run_in_one_visible_order_each_switchable() -> None:
     names = [name for name, _ in STEPS]
+    assert tuple(names) == STEP_NAMES  # the parameters know the steps by these names
     assert len(set(names)) == len(names) and DEFAULT_STEPS <= set(names)
     assert names.index("halve") < names.index("slips") < names.index("group")
     assert names.index("within_sound") < names.index("group")  # no bar evidence from silence
     with pytest.raises(ValueError):
-        BeatParams(steps=frozenset({"no_such_step"}))
-    p = BeatParams().without("group").with_steps("swing")
-    assert "group" not in p.steps and "swing" in p.steps and BeatParams().steps == DEFAULT_STEPS
+        AnalysisParams(steps=frozenset({"no_such_step"}))
+    p = AnalysisParams().without("group").with_steps("swing")
+    assert "group" not in p.steps and "swing" in p.steps and AnalysisParams().steps == DEFAULT_STEPS
     song = _song(4, 4, 128.0)
     ev = beat_evidence(song.y, song.sr)
     same = track_evidence(ev)
@@ -1317,18 +1330,18 @@ def test_a_faint_pulse_gets_beats_with_a_warning_not_no_beat() -> None:
     beats, a weak_pulse warning and half the confidence; 6 dB under, it is refused."""
     song = _song(3, 4, 100.0)
     noise = np.random.default_rng(0).standard_normal(len(song.y)).astype(np.float32)
-    for snr_db, usable in ((-3, True), (-6, False)):
+    for snr_db, has_beats in ((-3, True), (-6, False)):
         y = song.y / np.std(song.y) * np.float32(10 ** (snr_db / 20)) + noise
         y = (0.9 * y / np.abs(y).max()).astype(np.float32)
-        if not usable:
+        if not has_beats:
             with pytest.raises(AudioError) as err:
                 track_beats(y, song.sr)
             assert err.value.code == "no_beat"
             continue
         res = track_beats(y, song.sr)
         assert any(w.startswith("weak_pulse") for w in res.warnings)
-        assert res.evidence["beatnet_contrast"] < NO_BEAT["beatnet"]["clear_contrast"]
-        assert res.evidence["pause_share"] < NO_BEAT["speech_pauses"]  # music, not speech
+        assert res.evidence["beatnet_contrast"] < NoBeatParams().beatnet.clear_contrast
+        assert res.evidence["pause_share"] < SpeechParams().min_pauses  # music, not speech
         assert beat_f_measure(song.truth["beats"], res.beats) >= 0.95
         assert res.tempo_confidence < 0.5
 
