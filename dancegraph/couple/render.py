@@ -18,7 +18,8 @@ frame 0 is t = 0 of the song. The re-timing of a solo render (``output.stops_on_
 
 Files per alternative k: ``alternatives/<k>/lead.bvh`` and ``alternatives/<k>/follow.bvh``
 (same frame count, frame rate and world frame), and with ``"fbx"`` in ``output.formats``
-``alternatives/<k>/lead.fbx`` and ``follow.fbx`` (Blender); ``timeline.json`` as for one dancer
+``alternatives/<k>/lead.fbx`` and ``follow.fbx`` (Blender); both dancers in one
+``alternatives/<k>/couple.glb`` (``couple.glb``); ``timeline.json`` as for one dancer
 with ``couple: true`` and both partners' takes per bar.
 """
 
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dancegraph.couple.glb import write_couple_glb
 from dancegraph.couple.graph import follow_frames, follow_take, is_couple
 from dancegraph.couple.placement import place_follow, relative_placement, wrap
 from dancegraph.errors import DanceGraphError
@@ -262,7 +264,8 @@ def _jump(rel: np.ndarray, at_cut: np.ndarray, starts: np.ndarray, seam: np.ndar
 def _write_partners(
     k: int, lead: Motion, follow: Motion, out: Path, formats: list[str], exporter
 ) -> dict[str, str]:
-    """Alternative ``k``'s files: ``alternatives/<k>/lead.bvh|follow.bvh`` (and ``.fbx``)."""
+    """Alternative ``k``'s files: ``alternatives/<k>/lead.bvh|follow.bvh`` (and ``.fbx``) and
+    both in ``alternatives/<k>/couple.glb`` (``couple.glb``)."""
     files: dict[str, str] = {}
     (out / "alternatives" / str(k)).mkdir(parents=True, exist_ok=True)
     for key, dance in (("lead", lead), ("follow", follow)):
@@ -275,6 +278,8 @@ def _write_partners(
             files[f"{key}_bvh"] = bvh
         else:
             (out / bvh).unlink()
+    write_couple_glb({"lead": lead, "follow": follow}, out / f"alternatives/{k}/couple.glb")
+    files["glb"] = f"alternatives/{k}/couple.glb"
     return files
 
 

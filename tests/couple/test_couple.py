@@ -5,6 +5,7 @@ the couple checks, the real-pair against wrong-pair calibration, and the files."
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,17 @@ from dancegraph.store import FileStore
 from tests.demo import demo_song
 
 PAIRS = [["60_03", "61_03"], ["60_04", "61_04"]]
+
+
+def _read_glb(path: Path) -> tuple[dict, bytes]:
+    """A GLB's JSON document and binary chunk (glTF 2.0 container, read by hand)."""
+    data = path.read_bytes()
+    magic, version, total = struct.unpack_from("<III", data)
+    assert (magic, version, total) == (0x46546C67, 2, len(data))
+    n_json, _ = struct.unpack_from("<II", data, 12)
+    doc = json.loads(data[20 : 20 + n_json])
+    n_bin, _ = struct.unpack_from("<II", data, 20 + n_json)
+    return doc, data[28 + n_json : 28 + n_json + n_bin]
 
 
 @pytest.fixture(scope="module")
@@ -149,6 +161,21 @@ def test_couple_files_share_frames_and_world(synthesized, couple):
         for entry in alt["bars"]:
             partners = entry["partners"]
             assert [partners["lead"]["take"], partners["follow"]["take"]] in PAIRS
+        # one GLB holds both dancers, each its own skeleton, animated as the BVH files
+        doc, blob = _read_glb(result / alt["files"]["glb"])
+        assert [doc["nodes"][n]["name"] for n in doc["scenes"][0]["nodes"]] == ["lead", "follow"]
+        assert len(doc["nodes"]) == 2 + 2 * graph.skeleton.n_joints
+        for name, dancer in (("lead", lead), ("follow", follow)):
+            node = next(i for i, n in enumerate(doc["nodes"]) if n["name"] == f"{name}:hip")
+            channel = next(
+                c
+                for c in doc["animations"][0]["channels"]
+                if c["target"] == {"node": node, "path": "translation"}
+            )
+            acc = doc["accessors"][doc["animations"][0]["samplers"][channel["sampler"]]["output"]]
+            view = doc["bufferViews"][acc["bufferView"]]
+            root = np.frombuffer(blob, np.float32, acc["count"] * 3, view["byteOffset"])
+            assert np.allclose(root.reshape(-1, 3), dancer.root_positions, atol=1e-4)
 
 
 def test_synthesized_couple_passes_the_couple_checks(synthesized, couple, capsys):
