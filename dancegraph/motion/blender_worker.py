@@ -41,6 +41,7 @@ os.dup2(2, 1)
 sys.stdout = sys.stderr
 
 import bpy  # noqa: E402  (after the redirect on purpose)
+from mathutils import Matrix  # noqa: E402
 
 
 def _send(obj: dict) -> None:
@@ -101,7 +102,7 @@ def export_fbx(fbx_path: str, object_types: set[str]) -> None:
 
 # Blender's world (Z up, -Y forward) → the Y-up frame of the BVH and glTF conventions, in which
 # DanceGraph hands over rigs and dances: (x, y, z) → (x, z, -y).
-_TO_Y_UP = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+_Y_UP = Matrix(((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))).to_4x4()
 
 
 def _import_rig(path: str, unit_scale: float):
@@ -136,148 +137,115 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
 
     ``anim_path`` (numpy ``.npz``): ``names (J,)`` joint names, ``g (F, J, 4)`` each joint's world
     rotation from its bind pose (x, y, z, w; Y-up frame), ``positions (F, J, 3)`` world joint
-    positions (m, Y-up frame), ``fps``, ``unit_scale`` (metres per unit of a BVH rig). A bone
-    turns by its joint's world rotation from bind: its pose is ``Rest⁻¹ · G_parent⁻¹ · G · Rest``
-    in its own rest frame (``Rest``: its rest orientation in the Y-up world); a root bone also
-    moves to its joint's position. Bones without a joint keep their bind pose to their parent.
+    positions (m, Y-up frame), ``fps``, ``unit_scale`` (metres per unit of a BVH rig). Each bone's
+    pose per frame comes from :func:`bone_poses`; the scene holds the first frame's pose (the
+    FBX's static values, and ``first_frame``: each joint's world position, the parent's read-back
+    check), and the exporter's per-frame sampling is answered from :func:`bone_channels`, so
+    Blender never evaluates the scene frame by frame.
     """
     import numpy as np
-    from mathutils import Matrix
 
     t0 = time.perf_counter()
     data = np.load(anim_path, allow_pickle=False)
     names = [str(n) for n in data["names"]]
-    g = np.asarray(data["g"], dtype=float)
-    positions = np.asarray(data["positions"], dtype=float)
     fps = float(data["fps"])
-    n_frames = g.shape[0]
     clear_scene()
     scene = bpy.context.scene
     armature = _import_rig(rig_path, float(data["unit_scale"]))
     if armature.animation_data is not None:
         armature.animation_data_clear()
-    to_y = Matrix(_TO_Y_UP).to_4x4()
-    world = to_y @ armature.matrix_world  # armature space → Y-up world
-    index = {n: i for i, n in enumerate(names)}
-    bones = list(armature.data.bones)
-
-    def as_wxyz(q):  # (..., 4) xyzw → wxyz
-        return np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
-
-    def qmul(a, b):  # xyzw products, broadcast
-        ax, ay, az, aw = np.moveaxis(a, -1, 0)
-        bx, by, bz, bw = np.moveaxis(b, -1, 0)
-        return np.stack(
-            [
-                aw * bx + ax * bw + ay * bz - az * by,
-                aw * by - ax * bz + ay * bw + az * bx,
-                aw * bz + ax * by - ay * bx + az * bw,
-                aw * bw - ax * bx - ay * by - az * bz,
-            ],
-            axis=-1,
-        )
-
-    def conj(q):
-        return q * np.array([-1.0, -1.0, -1.0, 1.0])
-
-    def quat_of(m):
-        q = m.to_quaternion()
-        return np.array([q.x, q.y, q.z, q.w])
-
-    # world rotation from bind of every bone: its joint's, else its parent's (it follows)
-    g_bone: dict[str, np.ndarray] = {}
-    identity = np.tile([0.0, 0.0, 0.0, 1.0], (n_frames, 1))
-    for bone in bones:  # Blender lists parents before children
-        if bone.name in index:
-            g_bone[bone.name] = g[:, index[bone.name]]
-        else:
-            g_bone[bone.name] = g_bone[bone.parent.name] if bone.parent else identity
-    action = bpy.data.actions.new("dance")
-    armature.animation_data_create()
-    armature.animation_data.action = action
-    frames = np.arange(n_frames, dtype=float)
-    keyed = 0
-    poses: dict[str, tuple] = {}  # bone → (rotation (F, 4) wxyz, location (F, 3) or None)
-    for bone in bones:
-        pb = armature.pose.bones[bone.name]
+    poses = bone_poses(armature, names, np.asarray(data["g"]), np.asarray(data["positions"]))
+    for name, (rot, loc) in poses.items():
+        pb = armature.pose.bones[name]
         pb.rotation_mode = "QUATERNION"
-        rest_w = world @ bone.matrix_local
-        rest = quat_of(rest_w)
-        g_parent = g_bone[bone.parent.name] if bone.parent else identity
-        local = qmul(conj(g_parent), g_bone[bone.name])
-        basis = qmul(qmul(conj(rest), local), rest)
-        basis = as_wxyz(basis / np.linalg.norm(basis, axis=-1, keepdims=True))
-        flips = np.cumsum(np.sum(basis[1:] * basis[:-1], axis=-1) < 0) % 2
-        basis[1:][flips.astype(bool)] *= -1.0
-        curves = [
-            (f'pose.bones["{bone.name}"].rotation_quaternion', k, basis[:, k]) for k in range(4)
-        ]
-        if bone.parent is None and bone.name in index:
-            # the root bone's world transform from bind, X = [G | p - G p_rest], in its rest frame
-            rest4 = np.array(rest_w)
-            x, y, z, w = np.moveaxis(g_bone[bone.name], -1, 0)
-            rg = np.stack(
-                [
-                    np.stack(
-                        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1
-                    ),
-                    np.stack(
-                        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1
-                    ),
-                    np.stack(
-                        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1
-                    ),
-                ],
-                axis=1,
-            )
-            xf = np.tile(np.eye(4), (n_frames, 1, 1))
-            xf[:, :3, :3] = rg
-            xf[:, :3, 3] = positions[:, index[bone.name]] - rg @ rest4[:3, 3]
-            loc = (np.linalg.inv(rest4)[None] @ xf @ rest4[None])[:, :3, 3]
-            curves += [(f'pose.bones["{bone.name}"].location', k, loc[:, k]) for k in range(3)]
-            poses[bone.name] = (basis, loc)
-        else:
-            poses[bone.name] = (basis, None)
-        for data_path, k, values in curves:
-            fc = action.fcurve_ensure_for_datablock(armature, data_path, index=k)
-            fc.keyframe_points.add(n_frames)
-            co = np.empty(2 * n_frames, dtype=np.float32)
-            co[0::2] = frames
-            co[1::2] = values
-            fc.keyframe_points.foreach_set("co", co)
-            fc.keyframe_points.foreach_set(
-                "interpolation",
-                np.full(n_frames, 1, dtype=np.int32),  # LINEAR
-            )
-            fc.update()
-        keyed += 1
+        pb.rotation_quaternion = rot[0]
+        if loc is not None:
+            pb.location = loc[0]
+    n_frames = len(data["g"])
     scene.render.fps = max(1, int(round(fps)))
     scene.render.fps_base = scene.render.fps / fps
     scene.frame_start = 0
     scene.frame_end = n_frames - 1
     scene.frame_set(0)
-    to_world = to_y @ armature.matrix_world
-    first = {
-        name: list(to_world @ armature.pose.bones[name].head)
-        for name in names
-        if name in armature.pose.bones
-    }
+    to_world = _Y_UP @ armature.matrix_world
+    first = {n: list(to_world @ armature.pose.bones[n].head) for n in names if n in poses}
     meshes = [ob for ob in scene.objects if ob.type == "MESH"]
-    table = bone_channels(armature, poses)
-    armature.animation_data.action = None  # the keys are in ``table``: no per-frame evaluation
-    try:
-        with baked_from(table):
-            export_fbx(fbx_path, {"ARMATURE", "MESH", "EMPTY"})
-    finally:
-        armature.animation_data.action = action
+    with baked_from(bone_channels(armature, poses)):
+        export_fbx(fbx_path, {"ARMATURE", "MESH", "EMPTY"})
     return {
         "frames": n_frames,
         "fps": scene.render.fps / scene.render.fps_base,
-        "joints": keyed,
+        "joints": len(poses),
         "meshes": len(meshes),
         "first_frame": first,
         "seconds": round(time.perf_counter() - t0, 4),
     }
+
+
+def bone_poses(armature, names: list[str], g, positions) -> dict[str, tuple]:
+    """Every bone's pose per frame: bone → (quaternions ``(F, 4)`` wxyz, locations ``(F, 3)``
+    or None).
+
+    ``g (F, J, 4)``: each joint ``names[j]``'s world rotation from bind (xyzw, Y-up world);
+    ``positions (F, J, 3)``: its world position (m). A bone turns by its joint's world rotation
+    from bind: its pose is ``Rest⁻¹ · G_parent⁻¹ · G · Rest`` in its own rest frame (``Rest``: its
+    rest orientation in the Y-up world), sign-continuous in time; a root bone also moves to its
+    joint's position. Bones without a joint keep their bind pose to their parent.
+    """
+    import numpy as np
+
+    world = _Y_UP @ armature.matrix_world  # armature space → Y-up world
+    index = {n: i for i, n in enumerate(names)}
+    n_frames = g.shape[0]
+    identity = np.tile([0.0, 0.0, 0.0, 1.0], (n_frames, 1))
+    g_bone: dict[str, np.ndarray] = {}  # world rotation from bind: its joint's, else its parent's
+    poses: dict[str, tuple] = {}
+    for bone in armature.data.bones:  # Blender lists parents before children
+        if bone.name in index:
+            g_bone[bone.name] = g[:, index[bone.name]]
+        else:
+            g_bone[bone.name] = g_bone[bone.parent.name] if bone.parent else identity
+        rest_w = np.array(world @ bone.matrix_local)
+        q = (world @ bone.matrix_local).to_quaternion()
+        rest = np.array([q.x, q.y, q.z, q.w])
+        g_parent = g_bone[bone.parent.name] if bone.parent else identity
+        local = _qmul(_conj(g_parent), g_bone[bone.name])
+        basis = _qmul(_qmul(_conj(rest), local), rest)
+        basis = basis / np.linalg.norm(basis, axis=-1, keepdims=True)
+        basis = np.concatenate([basis[:, 3:], basis[:, :3]], axis=1)  # wxyz
+        flips = np.cumsum(np.sum(basis[1:] * basis[:-1], axis=-1) < 0) % 2
+        basis[1:][flips.astype(bool)] *= -1.0
+        loc = None
+        if bone.parent is None and bone.name in index:
+            # the root bone's world transform from bind, X = [G | p - G p_rest], in its rest frame
+            wxyz = np.concatenate([g_bone[bone.name][:, 3:], g_bone[bone.name][:, :3]], axis=1)
+            xf = np.tile(np.eye(4), (n_frames, 1, 1))
+            xf[:, :3, :3] = _quat_matrices(wxyz)
+            xf[:, :3, 3] = positions[:, index[bone.name]] - xf[:, :3, :3] @ rest_w[:3, 3]
+            loc = (np.linalg.inv(rest_w)[None] @ xf @ rest_w[None])[:, :3, 3]
+        poses[bone.name] = (basis, loc)
+    return poses
+
+
+def _qmul(a, b):
+    """Hamilton products of quaternions ``(..., 4)`` (x, y, z, w), broadcast."""
+    import numpy as np
+
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
+def _conj(q):
+    return q * [-1.0, -1.0, -1.0, 1.0]
 
 
 def bone_channels(armature, poses: dict[str, tuple]) -> dict[str, tuple]:
@@ -358,9 +326,9 @@ def _euler_continuous(e):
 class baked_from:
     """While exporting: the FBX exporter's per-frame sampling (its ``frame_values_gen``, which
     sets every frame and decomposes every object's matrix) is answered from ``table`` (see
-    :func:`bone_channels`) for the bones in it and each other object's one transform (they do
-    not move). Only the numpy its module sees is swapped; Blender's code runs unchanged, and a
-    scene with shape keys, cameras or animated instances is sampled by the exporter itself.
+    :func:`bone_channels`) for the bones in it and each other object's, shape key's and
+    camera's one value (they do not move). Only the numpy its module sees is swapped; Blender's
+    code runs unchanged. A scene with animated instances (duplis) is refused.
     """
 
     def __init__(self, table: dict[str, tuple]) -> None:
@@ -387,32 +355,31 @@ class _NumpyFromTable:
         return getattr(self._np, name)
 
     def fromiter(self, values, dtype=float, count=-1):
-        known = (
-            self._sampled(values) if getattr(values, "__name__", "") == "frame_values_gen" else None
-        )
-        return known if known is not None else self._np.fromiter(values, dtype=dtype, count=count)
+        if getattr(values, "__name__", "") == "frame_values_gen":
+            return self._sampled(values)
+        return self._np.fromiter(values, dtype=dtype, count=count)
 
     def _sampled(self, gen):
-        """The sampler's values ``(F · 9 · objects,)`` from the table, or None to let it run."""
+        """The sampler's values ``(F · per-frame values,)`` from the table: the table's bones,
+        every other object's, shape key's and camera's one value (nothing else moves)."""
         np = self._np
         scope = gen.gi_frame.f_locals  # the sampler's closure: what it would have sampled
-        objects, frames = scope.get("animdata_ob"), scope.get("currframes")
-        if objects is None or frames is None or scope.get("has_animated_duplis", True):
-            return None
-        if scope.get("animdata_shapes") or scope.get("animdata_cameras"):
-            return None
-        scene_data = scope["scene_data"]
-        start = scene_data.scene.frame_start
-        index = frames.astype(int) - start
+        if scope.get("has_animated_duplis", True):
+            raise RuntimeError("the rig's scene has animated instances (duplis): not supported")
+        scene_data, frames = scope["scene_data"], scope["currframes"]
+        index = frames.astype(int) - scene_data.scene.frame_start
         columns = []
-        for ob in objects:
+        for ob in scope["animdata_ob"]:
             if ob.is_bone and ob.bdata.name in self._table:
                 loc, rot, scale = self._table[ob.bdata.name]
                 columns.append(np.concatenate([loc, rot, scale], axis=1)[index])
             else:
                 loc, rot, scale, _m, _mr = ob.fbx_object_tx(scene_data)
-                row = np.array([*loc, *rot, *scale], dtype=float)
-                columns.append(np.broadcast_to(row, (len(index), 9)))
+                columns.append(np.tile([*loc, *rot, *scale], (len(index), 1)))
+        for _acnode, _me, shape in scope["animdata_shapes"].values():
+            columns.append(np.full((len(index), 1), shape.value))
+        for _lens, _focus, camera in scope["animdata_cameras"].values():
+            columns.append(np.tile([camera.lens, camera.dof.focus_distance], (len(index), 1)))
         gen.close()
         return np.concatenate(columns, axis=1).ravel() if columns else np.zeros(0)
 

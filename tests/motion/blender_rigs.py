@@ -8,7 +8,8 @@ skinned box per bone), ``formats`` (default ``["fbx"]``), ``cm`` (the armature o
 node ``{"name", "rotation_x_deg", "scale"}``, its bones and mesh in that node's units and axes, as a
 centimetre, Z-up export from a DCC tool is), ``fbx_cm`` (the FBX written in centimetres,
 ``UnitScaleFactor`` 1) and ``prerot`` (every bone's local rotation moved into FBX pre- and
-post-rotations, as Maya's joint orients are, the rest pose unchanged).
+post-rotations, as Maya's joint orients are, the rest pose unchanged), ``shape_key`` (the mesh
+gets a blend shape set to 0.25).
 """
 
 from __future__ import annotations
@@ -122,6 +123,13 @@ def build(spec: dict, out_dir: str) -> None:
             for b in bones
         ]
         box_mesh(turned, arm_obj, to_local if arm_obj is not None else None)
+        if spec.get("shape_key"):  # a blend shape, as faces of real characters carry
+            body = bpy.data.objects["body"]
+            body.shape_key_add(name="Basis")
+            key = body.shape_key_add(name="wide")
+            for point in key.data:
+                point.co.x *= 1.1
+            key.value = 0.25
     for fmt in spec.get("formats", ["fbx"]):
         path = os.path.join(out_dir, f"{spec['name']}.{fmt}")
         if fmt == "fbx":

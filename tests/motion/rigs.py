@@ -11,8 +11,8 @@ Mannequin names, A-pose, a ``root`` bone and twist bones, Z up and facing +Y in 
 ``fingers`` (Mixamo names with twist bones and three-segment fingers), ``skinned`` (Unity
 humanoid names with a skinned mesh; also as ``skinned.glb``), ``parented`` (a skinned GLB whose
 armature sits under a node scaled 0.01 and turned -90 degrees about X), ``prerot`` (a skinned
-Mixamo-named FBX in centimetres with pre- and post-rotations), ``cmu_cm`` (BVH in centimetres with
-CMU names), and the bad ones: ``bad_no_armature`` (a mesh only), ``bad_no_legs``,
+Mixamo-named FBX in centimetres with pre- and post-rotations and a blend shape), ``cmu_cm``
+(BVH in centimetres with CMU names), and the bad ones: ``bad_no_armature`` (a mesh only), ``bad_no_legs``,
 ``bad_disconnected`` (legs in trees of their own), ``bad_zero_length`` (a BVH knee on its hip).
 """
 
@@ -329,6 +329,7 @@ def rig_specs() -> list[dict]:
             "cm": True,
             "fbx_cm": True,
             "prerot": True,
+            "shape_key": True,
         }
     )
     # bad rigs
