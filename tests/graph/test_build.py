@@ -240,6 +240,7 @@ def test_dataset_build_cli_prints_counts_and_stores_a_version(demo_store, capsys
         "licence": ds.licence,
         "acknowledgement": ds.meta.get("acknowledgement"),
         "style_tempo_bpm": None,  # the demo library declares no style tempo range
+        "style": None,  # nor one style for the library (its takes have three)
     }
     assert g.manifest["params"]["threshold"] == 15.0
     assert [n for n, k in zip(g.node_ids, g.node_kind, strict=True) if k == 0] == ds.node_ids()
