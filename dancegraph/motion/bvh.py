@@ -96,7 +96,12 @@ class _Tokens:
                 line=line,
                 code=code,
             )
-        return float(tok)
+        value = float(tok)
+        if not np.isfinite(value):  # 1e999
+            raise MotionFileError(
+                f"{what} is not finite ({tok[:100]!r})", path=self.path, line=line, code="bvh_nan"
+            )
+        return value
 
 
 def _check_text(raw: bytes, path: str) -> str:

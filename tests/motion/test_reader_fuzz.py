@@ -152,8 +152,12 @@ def _outcome(path: Path) -> str:
     sk = rig.skeleton
     if sk.n_joints > MAX_JOINTS or any(name_problem(n) for n in sk.names):
         return "a rig past the limits"
-    if not np.isfinite(sk.offsets).all():
-        return "a rig with non-finite offsets"
+    ends = [np.asarray(v) for v in sk.end_sites.values()]
+    ends += [np.asarray(m) for _, m in rig.ancestors]
+    if not all(np.isfinite(a).all() for a in [sk.offsets, rig.rest_rotations, *ends]):
+        return "a rig with non-finite offsets or rotations"
+    if not np.isfinite(rig.floor) or not np.isfinite(rig.height()):
+        return "a rig with a non-finite floor or height"
     return "rig"
 
 
