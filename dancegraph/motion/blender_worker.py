@@ -308,7 +308,21 @@ def _quat_matrices(q):
 
 def _euler_continuous(e):
     """``(F, B, 3)`` XYZ Euler angles, each frame's the equivalent nearest the previous frame's
-    (the other solution ``(x + π, π - y, z + π)`` and whole turns), as Blender's compat does."""
+    (the other solution ``(x + π, π - y, z + π)`` and whole turns), as Blender's compat does.
+
+    Whole turns are removed along time at once; only a bone whose angles still jump (a pass near
+    gimbal lock, where the other solution is the nearer one) is walked frame by frame."""
+    import numpy as np
+
+    out = np.unwrap(e, axis=0)
+    jumpy = (np.abs(np.diff(out, axis=0)) > np.pi / 2).any(axis=(0, 2))
+    if jumpy.any():
+        out[:, jumpy] = _euler_walk(e[:, jumpy])
+    return out
+
+
+def _euler_walk(e):
+    """:func:`_euler_continuous` frame by frame: of the two solutions, the nearer each time."""
     import numpy as np
 
     turn = 2 * np.pi
