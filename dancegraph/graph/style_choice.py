@@ -20,12 +20,16 @@ chosen, and the reason string says by which term it won.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dancegraph.errors import SpecError
+
+if TYPE_CHECKING:
+    from dancegraph.spec import Spec
 
 #: Weight of one octave of tempo misfit in the score (a style danced an octave off its range
 #: loses to any style it fits).
@@ -135,6 +139,36 @@ def choose_library(analysis, candidates: list[Candidate]) -> dict:
         "tempo_bpm": round(tempo, 2),
         "candidates": rows,
     }
+
+
+def resolve(spec: Spec, analysis, graphs: Mapping[str, Any]) -> tuple[Spec, dict | None]:
+    """The spec danced on one library, and the choice that picked it (None: the spec named one).
+
+    ``spec``: a spec whose ``dataset`` names one library and no ``style`` comes back as it is.
+    Otherwise the candidates are ``graphs`` (name → built ``MotionGraph``: the libraries the
+    spec lists, or for a ``style`` every library the caller may use), those of the spec's list
+    when it gives one, and those whose style label is ``spec.style`` unless it is ``auto``;
+    :func:`choose_library` picks among them and the chosen name replaces ``spec.dataset``.
+    Raises ``SpecError`` ``style_unknown`` (422) when no candidate is left, naming the styles
+    there are.
+    """
+    from dancegraph.spec import parse_spec
+
+    if isinstance(spec.dataset, str) and spec.style is None:
+        return spec, None
+    names = spec.libraries() if isinstance(spec.dataset, list) else list(graphs)
+    cands = [candidate(graphs[n]) for n in names if n in graphs]
+    if spec.style not in (None, "auto"):
+        cands = [c for c in cands if c.style == spec.style]
+    if not cands:
+        styles = sorted({candidate(g).style for g in graphs.values()})
+        raise SpecError(
+            f"no library of style {spec.style!r} among {names} (styles: {', '.join(styles)})",
+            code="style_unknown",
+            field="spec.style" if spec.style else "spec.dataset",
+        )
+    choice = choose_library(analysis, cands)
+    return parse_spec(spec, dataset=choice["chosen"]), choice
 
 
 def _reason(tempo: float, rows: list[dict]) -> str:

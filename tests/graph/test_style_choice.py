@@ -11,7 +11,7 @@ import yaml
 from dancegraph.errors import SpecError
 from dancegraph.graph.artifact import load_current
 from dancegraph.graph.build import build_dataset_graph
-from dancegraph.graph.style_choice import candidate, choose_library, tempo_cost
+from dancegraph.graph.style_choice import candidate, choose_library, resolve, tempo_cost
 from dancegraph.motion.dataset import import_dataset
 from dancegraph.music.analysis import analyze
 from dancegraph.paths import REPO_ROOT
@@ -25,7 +25,7 @@ TAKES = {
 
 
 @pytest.fixture(scope="module")
-def candidates(shared: Path, tmp_path_factory) -> list:
+def graphs(shared: Path, tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("styles")
     store = FileStore(root / "store")
     for name, takes in TAKES.items():
@@ -38,7 +38,17 @@ def candidates(shared: Path, tmp_path_factory) -> list:
         )
         import_dataset(src, name, store, manifest)
         build_dataset_graph(store, name)
-    return [candidate(load_current(store, name)) for name in TAKES]
+    return {name: load_current(store, name) for name in TAKES}
+
+
+@pytest.fixture(scope="module")
+def candidates(graphs) -> list:
+    return [candidate(g) for g in graphs.values()]
+
+
+@pytest.fixture(scope="module")
+def fast_song(cc_music_dir):
+    return analyze(cc_music_dir / "Karissa_Hobbs_-_Lets_Go_Fishin.hq.ogg")
 
 
 @pytest.mark.parametrize(
@@ -61,6 +71,20 @@ def test_the_song_tempo_and_style_choose_the_library(candidates, cc_music_dir, s
     )
     assert result["reason"].startswith(chosen) and rows[chosen]["style"] in result["reason"]
     assert {c.style for c in candidates} == {"salsa", "modern"}
+
+
+def test_resolve_gives_the_spec_one_library(graphs, fast_song):
+    one = parse_spec({"dataset": "cmu-modern"})
+    assert resolve(one, fast_song, graphs) == (one, None)
+    for data in ({"style": "auto"}, {"dataset": ["cmu-modern", "cmu-salsa"]}):
+        spec, choice = resolve(parse_spec(data), fast_song, graphs)
+        assert spec.dataset == "cmu-salsa" and choice is not None
+        assert [r["name"] for r in choice["candidates"]] == ["cmu-salsa", "cmu-modern"]
+    spec, choice = resolve(parse_spec({"style": "modern"}), fast_song, graphs)
+    assert spec.dataset == "cmu-modern" and choice is not None and len(choice["candidates"]) == 1
+    with pytest.raises(SpecError) as err:
+        resolve(parse_spec({"style": "tango"}), fast_song, graphs)
+    assert err.value.code == "style_unknown" and "modern, salsa" in err.value.message
 
 
 def test_tempo_fit_counts_half_and_double_time():
