@@ -94,7 +94,7 @@ def _upload(settings: Settings, store: ObjectStore, tenant_id: str, form) -> Rig
     response_model=RigOut,
     summary="Upload a rig (FBX, GLB, BVH); its humanoid roles are found and checked now",
     openapi_extra=RIG_UPLOAD,
-    responses={**AUTH_ERRORS, 413: PROBLEM, 415: PROBLEM, 422: PROBLEM},
+    responses={**AUTH_ERRORS, 413: PROBLEM, 415: PROBLEM, 422: PROBLEM, 503: PROBLEM},
 )
 async def create_rig(
     request: Request,
