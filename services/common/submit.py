@@ -29,13 +29,15 @@ def check_callback(settings: Settings, spec: Spec) -> None:
 
 
 def check_dataset(settings: Settings, spec: Spec, graphstore, tenant_id: str | None = None) -> None:
-    """422 ``unknown_dataset`` unless ``spec.dataset`` is a public library (the catalog, or the
-    graph store) or a built library of the tenant ``tenant_id``."""
+    """422 ``unknown_dataset`` unless each library ``spec.dataset`` names (one, or a list) is a
+    public library (the catalog, or the graph store) or a built library of the tenant
+    ``tenant_id``."""
     with session_scope(settings.database_url) as session:
-        if catalog.find_dataset(session, spec.dataset, graphstore, tenant_id) is None:
-            raise ApiError(
-                422, "unknown_dataset", f"no dataset named {spec.dataset!r}", field="spec.dataset"
-            )
+        for name in spec.libraries():
+            if catalog.find_dataset(session, name, graphstore, tenant_id) is None:
+                raise ApiError(
+                    422, "unknown_dataset", f"no dataset named {name!r}", field="spec.dataset"
+                )
 
 
 def spec_json(spec: Spec) -> dict:

@@ -157,6 +157,9 @@ def test_unknown_dataset(api, song_wav):
         api.submit(song_wav, {"dataset": "no-such-dataset"}), 422, "unknown_dataset", "spec.dataset"
     )
     assert "no-such-dataset" in body["detail"]
+    listed = {"dataset": ["cmu-salsa", "no-such-dataset"]}  # a list: every library must exist
+    body = _problem(api.submit(song_wav, listed), 422, "unknown_dataset", "spec.dataset")
+    assert "no-such-dataset" in body["detail"]
     _nothing_written(api)
 
 
