@@ -10,7 +10,7 @@ import pytest
 
 from dancegraph.errors import DanceGraphError
 from dancegraph.motion.bvh import read_bvh, write_bvh
-from dancegraph.motion.dataset import import_dataset, load_dataset
+from dancegraph.motion.dataset import import_dataset, load_dataset, parse_manifest
 from dancegraph.motion.demo import write_demo_library
 from dancegraph.motion.fbx import bvh_to_fbx, fbx_available
 from dancegraph.motion.fbx_anim import read_fbx_motion
@@ -197,3 +197,19 @@ def test_the_skeleton_source_can_be_a_named_take_or_a_rig_file(demo_dir, tmp_pat
     report = import_dataset(src, "rigged", store, {"skeleton": "hero.bvh", "clips": clips})
     assert load_dataset(store, "rigged").meta["skeleton_source"] == "rig:hero.bvh"
     assert sorted(c.id for c in report.clips) == ["groove_100", "pop_90"]
+
+
+@pytest.mark.parametrize(
+    ("data", "where"),
+    [
+        ({"roles": {"elbow": "j07"}}, "roles"),  # not a role
+        ({"clips": {"a": {"roles": {"hips": ""}}}}, "clips.a.roles"),
+        ({"clips": {"a": {"audio_offset_s": "soon"}}}, "clips.a.audio_offset_s"),
+        ({"clips": {"a": {"audio_file": "a.ogg"}}}, "clips.a.audio_file"),  # unknown key
+        ({"skeleton_file": "hero.fbx"}, "skeleton_file"),
+    ],
+)
+def test_manifest_fields_of_a_library_are_checked(data, where):
+    with pytest.raises(DanceGraphError) as err:
+        parse_manifest(data)
+    assert err.value.code == "manifest_invalid" and err.value.field == where
