@@ -13,13 +13,16 @@ import pytest
 from bench.bench_library import music_truth
 from dancegraph.cli import main as cli_main
 from dancegraph.motion.dataset import import_dataset, load_dataset
-from dancegraph.motion.demo import write_demo_library
 from dancegraph.store import FileStore
 
 
 @pytest.fixture(scope="module")
 def lib(tmp_path_factory) -> Path:
-    return write_demo_library(tmp_path_factory.mktemp("music"), seed=3, n_takes=2, with_music=True)
+    """Two generated takes with their music, written by ``motion demo --with-music``."""
+    out = tmp_path_factory.mktemp("music") / "lib"
+    cli_main(["motion", "demo", str(out), "--seed", "3", "--takes", "2", "--with-music"])
+    assert sorted(p.suffix for p in out.iterdir()).count(".ogg") == 2
+    return out
 
 
 @pytest.fixture(scope="module")
