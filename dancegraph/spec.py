@@ -73,6 +73,9 @@ class StructureRules(_Strict):
 BarRange = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
 SecondRange = Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]
 #: a tempo range [lo, hi] BPM; 20-400 spans every danced tempo and the tracker's octaves of it
+#: A motion library's name (a dataset).
+LibraryName = Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")]
+
 BpmRange = Annotated[
     list[Annotated[float, Field(ge=20, le=400)]], Field(min_length=2, max_length=2)
 ]
@@ -214,7 +217,18 @@ class Output(_Strict):
 class Spec(_Strict):
     """A user's constraint spec. Only ``dataset`` is needed, and it has a default."""
 
-    dataset: str = Field("cmu-salsa", pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")
+    dataset: LibraryName | Annotated[list[LibraryName], Field(min_length=1, max_length=50)] = Field(
+        "cmu-salsa",
+        description="the motion library, or a list of libraries to choose from by how the "
+        "song fits each (graph.style_choice); the timeline names the one chosen and why",
+    )
+    style: LibraryName | None = Field(
+        None,
+        description="a style name (the library whose manifest declares that style dances), or "
+        "'auto': choose among the tenant's and the public libraries (or the dataset list) by "
+        "the song's tempo against each style's tempo range and the music-to-motion style "
+        "distance (graph.style_choice)",
+    )
     alternatives: int = Field(3, ge=1, le=10)
     seed: int = Field(0, ge=0)
     weights: Weights = Field(default_factory=Weights)
@@ -256,6 +270,17 @@ class Spec(_Strict):
     callback_url: Annotated[HttpUrl, UrlConstraints(max_length=MAX_URL_CHARS)] | None = Field(
         None, description="POSTed when the job ends; must name a public address"
     )
+
+    @field_validator("dataset")
+    @classmethod
+    def _libraries_unique(cls, value: str | list[str]) -> str | list[str]:
+        if isinstance(value, list) and len(set(value)) != len(value):
+            raise ValueError("dataset: each library once")
+        return value
+
+    def libraries(self) -> list[str]:
+        """The library names ``dataset`` gives, as a list (one name: a list of one)."""
+        return [self.dataset] if isinstance(self.dataset, str) else list(self.dataset)
 
     @field_validator("tempo_range")
     @classmethod
