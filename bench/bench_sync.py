@@ -1,7 +1,8 @@
 """Sync of the rendered dance to its music (issue 24): the seeds' metrics beside their chance rows.
 
 Usage: ``python bench/bench_sync.py [--generated N] [--no-cc] [--real DIR [--real-per-genre K]]
-[--alternatives K] [--no-land-stops] [--beat-accent A] [--out DIR]``.
+[--alternatives K] [--stops-on-beats] [--beat-accent A] [--accent-row A] [--rows ROW...]
+[--out DIR]``.
 
 The harness's Table-3 analog (``dancegraph.eval``: rows ``ours``, ``no_rhythm``,
 ``random_walk``, every dance rendered and measured at 60 fps) on the cmu-salsa graph, imported
@@ -16,6 +17,14 @@ the sync table (value, half-beat and other-song chance rows) and, per song, ``ou
 issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15
 (beside the song's ceiling, ``bas_ceiling``, and the gain of BAS on the tracker's beats), CM beat
 accuracy >= 0.85 and >= 1.5 x its half-beat chance (beside its ceiling, ``cm_ceiling``).
+Beside the sync rows, naturalness (issue 37; ``metrics.naturalness``): per row the pulse depth
+(mean joint speed folded on the song's beats, 8 bins, 1 - min/max) beside the library's on its
+own grids, the re-timing's speed factor outside the seams, the recovered-grid check (the
+importer's estimator on the dance: tempo within 1 %, median offset <= 40 ms, downbeats >= 80 %)
+and its other-song chance row, FID_k, and the two-sample classifier's balanced accuracy per song
+against the library's takes and against the same takes with the renderer's foot cleanup, beside
+its library-against-library chance rows; the ``ours`` row is danced again with the beat
+accent ``--accent-row`` (default 0.4; 0: not run) for the stylization's cost.
 ``metrics.json`` and ``report.html`` of each run go to ``--out`` (default: a temporary folder,
 removed).
 ``DANCEGRAPH_SHARED`` points at the shared datasets (default ../shared).
@@ -48,6 +57,16 @@ from dancegraph.spec import Spec  # noqa: E402
 from dancegraph.store import FileStore, ObjectStore  # noqa: E402
 
 ROWS = ["ours", "no_rhythm", "random_walk"]
+NATURAL = (
+    ("pulse_depth", "pulse"),
+    ("speed_factor_min", "speed min"),
+    ("speed_factor_max", "speed max"),
+    ("grid_passed", "grid ok"),
+    ("grid_passed_other", "chance"),
+    ("fid_k", "FID_k"),
+    ("classifier", "classifier"),
+    ("classifier_cleaned", "vs cleaned"),
+)
 METRICS = ("cm_accuracy", "beat_accuracy", "bas_bailando", "bas_fact", "bas_beats", "phase_r")
 TARGET_R = 0.5
 TARGET_BAS_GAIN = 0.15
@@ -75,6 +94,39 @@ def _print_sync(title: str, metrics: dict) -> None:
             for m in METRICS
         ]
         print(f"{row:<12} " + "  ".join(cells))
+
+
+def _print_natural(title: str, runs: dict[str, dict]) -> None:
+    """The naturalness rows of each run (label: its ``metrics.json``), then per song ``ours``'s
+    pulse depth, recovered-grid passes and classifier accuracy in every run."""
+    library = next(iter(runs.values()))["library"]
+    pulse = library["pulse"] or {}
+    print(
+        f"\n{title}: naturalness (library's takes on their own grids: pulse depth median "
+        f"{_fmt(pulse.get('median'))}; two-sample test library against library "
+        f"{_fmt(library['classifier_chance'])}, cleaned takes against cleaned "
+        f"{_fmt(library.get('classifier_chance_cleaned'))})"
+    )
+    print("run      row          " + "".join(f"{name:>11}" for _, name in NATURAL))
+    for label, metrics in runs.items():
+        for row, entry in metrics["rows"].items():
+            print(
+                f"{label:<8} {row:<12} " + "".join(f"{_fmt(entry.get(k)):>11}" for k, _ in NATURAL)
+            )
+    for song_no, song in enumerate(next(iter(runs.values()))["songs"]):
+        cells = []
+        for label, metrics in runs.items():
+            ours = metrics["songs"][song_no]["rows"]["ours"]
+            dances = ours["dances"]
+            depth = sum(d.get("pulse_depth", 0.0) for d in dances) / max(len(dances), 1)
+            passed = sum(bool(d.get("grid_passed")) for d in dances)
+            chance = sum(bool(d.get("grid_passed_other")) for d in dances)
+            cells.append(
+                f"{label}: pulse {depth:.3f} grid {passed}/{len(dances)} (chance {chance}) "
+                f"classifier {_fmt(ours.get('classifier'))} / "
+                f"{_fmt(ours.get('classifier_cleaned'))}"
+            )
+        print(f"  {song['song'][:30]:<30} " + " | ".join(cells))
 
 
 def bas_ceiling(grid: mbeats.SyncGrid) -> float:
@@ -162,9 +214,9 @@ def main() -> int:
     )
     ap.add_argument("--real-per-genre", type=int, default=3, help="real songs per genre")
     ap.add_argument(
-        "--no-land-stops",
+        "--stops-on-beats",
         action="store_true",
-        help="render without the renderer's stops_on_beats step (spec output.stops_on_beats)",
+        help="render with the renderer's stops on the beats (spec output.stops_on_beats)",
     )
     ap.add_argument(
         "--beat-accent",
@@ -172,12 +224,19 @@ def main() -> int:
         default=None,
         help="the renderer's beat accent (spec output.beat_accent; default the spec's, 0: off)",
     )
+    ap.add_argument(
+        "--accent-row",
+        type=float,
+        default=0.4,
+        help="dance ours again with this beat accent for the naturalness table (0: not run)",
+    )
+    ap.add_argument("--rows", nargs="+", default=ROWS, help=f"harness rows (default {ROWS})")
     args = ap.parse_args()
     shared = shared_dir() / "datasets"
     if not (shared / "mocap" / "cmu-salsa").is_dir():
         print(f"shared mocap not found under {shared}: set DANCEGRAPH_SHARED")
         return 1
-    output: dict = {"stops_on_beats": not args.no_land_stops}
+    output: dict = {"stops_on_beats": args.stops_on_beats}
     if args.beat_accent is not None:
         output["beat_accent"] = args.beat_accent
     spec = Spec.model_validate({"alternatives": args.alternatives, "output": output})
@@ -215,10 +274,19 @@ def main() -> int:
             demo = _library(store, "demo", lib, json.loads((lib / "manifest.json").read_text()))
             sets.append(("generated songs, demo library", demo, songs))
         missed = 0
+        accented = spec.model_copy(
+            update={"output": spec.output.model_copy(update={"beat_accent": args.accent_row})}
+        )
         for k, (title, lib, songs) in enumerate(sets):
-            metrics = harness.evaluate(songs, lib, spec, out / f"set{k}", rows=ROWS)
+            metrics = harness.evaluate(songs, lib, spec, out / f"set{k}", rows=args.rows)
             _print_sync(title, metrics)
             missed += _targets(metrics, songs)
+            runs = {"spec": metrics}
+            if args.accent_row > 0:
+                runs[f"acc {args.accent_row:g}"] = harness.evaluate(
+                    songs, lib, accented, out / f"set{k}-accent", rows=["ours"]
+                )
+            _print_natural(title, runs)
     print(f"\n{missed} song runs miss a target; {time.perf_counter() - t0:.0f} s wall")
     return 0
 

@@ -93,6 +93,7 @@ SCALARS: dict[str, str] = {
 AGGREGATES: dict[str, str] = {
     "fid_k": "FID_k",
     "classifier": "Classifier bal. acc.",
+    "classifier_cleaned": "Classifier vs cleaned takes",
     "div_alternatives": "Div. alts",
     "div_paths": "Bars differ (alts)",
     "div_songs": "Div. songs",
@@ -122,7 +123,10 @@ class Library:
     contact_skate: dict | None = None  # the takes' own foot sliding at contacts (``seam_metrics``)
     pulse: dict | None = None  # the steady takes' pulse on their own grids (``naturalness``)
     descriptors: list[np.ndarray] = field(default_factory=list)  # per take: its 2-s windows
+    #: per take: the same with the renderer's foot cleanup (``contacts.clean_foot_skate``)
+    descriptors_cleaned: list[np.ndarray] = field(default_factory=list)
     classifier_chance: float | None = None  # the two-sample test, library against library
+    classifier_chance_cleaned: float | None = None  # ... the cleaned takes against themselves
     _takes: dict = field(default_factory=dict, repr=False)
 
     def take(self, clip: str) -> Motion:
@@ -147,17 +151,32 @@ def load_library(graph: MotionGraph, dataset=None) -> Library:
         smpl = kinetic.smpl_positions(motion.skeleton, pos, world)
         windows.append(kinetic.window_features(smpl, EVAL_FPS, FID_WINDOW_S))
         lib.descriptors.append(naturalness.window_descriptors(smpl, EVAL_FPS))
+        lib.descriptors_cleaned.append(_cleaned_descriptors(motion))
         skates.append(physical.foot_skating(pos, world, motion.skeleton, EVAL_FPS))
         if "no_steady_beat" not in clip.flags:
             bars = np.array([b.beat_times for b in dataset.bars if b.clip_id == clip.id])
             pulses.append((joint_speed(pos, EVAL_FPS, 0.0), EVAL_FPS, bars.reshape(-1, 5)))
     lib.pulse = naturalness.library_pulse(pulses)
     lib.classifier_chance = naturalness.library_chance(lib.descriptors, CLASSIFIER_FILES)
+    lib.classifier_chance_cleaned = naturalness.library_chance(
+        lib.descriptors_cleaned, CLASSIFIER_FILES
+    )
     lib.seams = smoothness.Reference.from_takes(positions, EVAL_FPS)
     lib.contact_skate = _pooled_skate(skates)
     lib.kinetic_windows = np.concatenate(windows)
     lib.norm = kinetic.normaliser(lib.kinetic_windows)
     return lib
+
+
+def _cleaned_descriptors(take: Motion) -> np.ndarray:
+    """The two-sample test's windows of a take with the renderer's foot cleanup: the reference
+    that tells the synthesis from the cleanup (the library's raw takes slide, a render does not)."""
+    from dancegraph.motion.contacts import clean_foot_skate
+
+    cleaned, _ = clean_foot_skate(take)
+    pos, world = forward_kinematics(cleaned)
+    smpl = kinetic.smpl_positions(cleaned.skeleton, pos, world)
+    return naturalness.window_descriptors(smpl, EVAL_FPS)
 
 
 # --------------------------------------------------------------------------------------------
@@ -624,22 +643,25 @@ def aggregate(lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[s
         firsts = [_norm(lib, song[row][0].features) for song in per_song if song.get(row)]
         entry["div_songs"] = diversity.feature_diversity(np.stack(firsts)) if firsts else None
         entry["classifier"] = _mean(classifier_scores(lib, per_song, [row])[row])
+        entry["classifier_cleaned"] = _mean(
+            classifier_scores(lib, per_song, [row], cleaned=True)[row]
+        )
         table[row] = entry
     return table
 
 
 def classifier_scores(
-    lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[str]
+    lib: Library, per_song: list[dict[str, list[Dance]]], rows: list[str], cleaned: bool = False
 ) -> dict[str, list[float | None]]:
     """Per row, per song: the two-sample test (``naturalness.two_sample_accuracy``) of the
-    song's dances of that row against the library's takes (None without the takes, with
-    fewer than two dances, or without scikit-learn)."""
+    song's dances of that row against the library's takes (``cleaned``: the takes with the
+    renderer's foot cleanup); None without the takes, with fewer than two dances, or without
+    scikit-learn."""
+    reference = lib.descriptors_cleaned if cleaned else lib.descriptors
     return {
         row: [
-            naturalness.two_sample_accuracy(
-                [d.descriptors for d in song.get(row, [])], lib.descriptors
-            )
-            if lib.descriptors
+            naturalness.two_sample_accuracy([d.descriptors for d in song.get(row, [])], reference)
+            if reference
             else None
             for song in per_song
         ]
@@ -650,7 +672,13 @@ def classifier_scores(
 def library_summary(lib: Library) -> dict:
     """The library's own numbers the naturalness rows stand beside: its steady takes' pulse on
     their own grids (``naturalness.library_pulse``) and the two-sample test's chance row."""
-    return to_json_types({"pulse": lib.pulse, "classifier_chance": lib.classifier_chance})
+    return to_json_types(
+        {
+            "pulse": lib.pulse,
+            "classifier_chance": lib.classifier_chance,
+            "classifier_chance_cleaned": lib.classifier_chance_cleaned,
+        }
+    )
 
 
 def sync_table(per_song: list[dict[str, list[Dance]]], rows: list[str]) -> dict:
@@ -702,8 +730,7 @@ def load_song(
     from dancegraph.music.decode import load_audio
 
     if analysis is None:
-        params = spec.analysis_params() if spec is not None else None
-        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph), params=params)
+        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph))
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)
@@ -741,7 +768,7 @@ def evaluate(
             "the real-dance row needs the dataset's takes", code="eval_no_dataset", field="rows"
         )
     per_song: list[dict[str, list[Dance]]] = []
-    songs_out = []
+    songs_out: list[dict[str, Any]] = []
     for s, song in enumerate(songs):
         dances: dict[str, list[Dance]] = {}
         # the other-song chance row: the same dances against the next song's music
@@ -767,9 +794,10 @@ def evaluate(
             }
         )
     table = aggregate(lib, per_song, rows)
-    for row, scores in classifier_scores(lib, per_song, rows).items():
-        for song_out, score in zip(songs_out, scores, strict=True):
-            song_out["rows"][row]["classifier"] = score
+    for key, cleaned in (("classifier", False), ("classifier_cleaned", True)):
+        for row, scores in classifier_scores(lib, per_song, rows, cleaned).items():
+            for song_out, score in zip(songs_out, scores, strict=True):
+                song_out["rows"][row][key] = score
     metrics = {
         "format": 1,
         "graph": {"name": lib.graph.name, "version": lib.graph.version},
