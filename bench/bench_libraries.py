@@ -96,7 +96,7 @@ def bench_upload(kind: str, folder: Path, name: str, manifest: Path | None) -> N
     print(
         f"{kind:<9} {name:<14} {takes:>5} {minutes:>6.1f} {lib['nodes']:>6} {lib['edges']:>7}"
         f" {st.get('accepted', 0):>7.1f} {st.get('build', float('nan')):>9.1f}"
-        f" {got['total_s']:>7.1f}"
+        f" {got['total_s']:>7.1f}  worker: {lib.get('seconds') or '-'}"
     )
 
 

@@ -128,6 +128,9 @@ class DatasetOut(BaseModel):
     edges: int | None = None
     takes: list[DatasetTakeOut] = Field(default_factory=list)
     warnings: list[str] = Field(default_factory=list)
+    seconds: dict[str, float] = Field(
+        default_factory=dict, description="the worker's seconds per phase: fetch, import, build"
+    )
     error: ErrorOut | None = None
     finished_at: UtcDatetime | None = None
     versions: list[DatasetVersionOut] = Field(

@@ -18,6 +18,7 @@ import logging
 import os
 import shutil
 import tarfile
+import time
 import zipfile
 from pathlib import Path, PurePosixPath
 
@@ -123,12 +124,20 @@ def run_import(row_id: int, settings: Settings | None = None) -> str:
             str(row_id), state.heartbeat_interval(settings.job_timeout_s), beat
         ) as hb:
             _stage(progress, "fetch", libraries.STAGES["fetch"])
+            t0 = time.perf_counter()
             src, archive = _fetch(store, upload, scratch)
+            t1 = time.perf_counter()
             report = _import(settings, store, graph_name, src, archive, upload, progress)
             hb.check()
             _stage(progress, "build", libraries.STAGES["build"])
+            t2 = time.perf_counter()
             built = _build(store, graph_name)
             hb.check()
+            report["seconds"] = {
+                "fetch": round(t1 - t0, 2),
+                "import": round(t2 - t1, 2),
+                "build": round(time.perf_counter() - t2, 2),
+            }
             _stage(progress, "publish", libraries.STAGES["publish"])
             beat()
         with session_scope() as session:

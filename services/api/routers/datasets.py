@@ -125,6 +125,7 @@ def _out(row: Dataset, versions: list[Dataset] | None = None) -> DatasetOut:
         edges=stats.get("edges"),
         takes=_takes(report),
         warnings=[str(w) for w in report.get("warnings", [])],
+        seconds=report.get("seconds") or {},
         error=error,
         finished_at=row.finished_at,
         versions=[
