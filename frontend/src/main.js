@@ -387,9 +387,10 @@ function loadModel(k) {
 // the character in view where the rig has a mesh and the character view is chosen
 async function showModel(k) {
   let model = null;
-  if (state.skeleton === "rig" && config.rig_models && state.view === "character") {
-    model = await loadModel(k);
-    if (!model.skinned) model = null;
+  if (state.skeleton === "rig" && config.rig_models) {
+    const loaded = await loadModel(k);
+    $("view-toggle").hidden = !loaded.skinned; // a rig without a mesh has only its skeleton
+    if (loaded.skinned && state.view === "character") model = loaded;
   }
   if (state.model && state.model !== model) scene.remove(state.model.root);
   if (model && state.model !== model) scene.add(model.root);
