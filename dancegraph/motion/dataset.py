@@ -938,17 +938,7 @@ def import_dataset(
     listed in the report with their code, not raised.
     """
     t0 = time.perf_counter()
-    if not _NAME.match(name):
-        raise DanceGraphError(
-            f"dataset name {name!r}: use letters, digits, '.', '_' or '-'",
-            code="dataset_name_invalid",
-            field="name",
-        )
-    src = Path(src_dir)
-    if not src.is_dir():
-        raise NotFoundError(
-            f"{src}: no such folder", code="dataset_source_not_found", field=str(src)
-        )
+    src = _source_folder(src_dir, name)
     if manifest is None:
         for mname in MANIFEST_NAMES:
             if (src / mname).is_file():
@@ -981,6 +971,23 @@ def import_dataset(
             progress(done, len(files), path.name)
     _refuse_failed(got, src, strict, store, data_prefix)
     return _publish(src, name, store, m, lib, got, data_prefix, t0)
+
+
+def _source_folder(src_dir: str | Path, name: str) -> Path:
+    """The import's folder, after checking the dataset ``name`` (``dataset_name_invalid``) and
+    that the folder exists (``dataset_source_not_found``)."""
+    if not _NAME.match(name):
+        raise DanceGraphError(
+            f"dataset name {name!r}: use letters, digits, '.', '_' or '-'",
+            code="dataset_name_invalid",
+            field="name",
+        )
+    src = Path(src_dir)
+    if not src.is_dir():
+        raise NotFoundError(
+            f"{src}: no such folder", code="dataset_source_not_found", field=str(src)
+        )
+    return src
 
 
 def _refuse_failed(
@@ -1020,36 +1027,13 @@ def _publish(
     t0: float,
 ) -> ImportReport:
     """Write ``dataset.json`` (the import becomes visible), drop older imports' data, report."""
-    assert lib.skeleton is not None  # set by the first imported take, and rows holds one
     prefix = f"datasets/{name}"
     fps_warning = _fps_warning(got.rows, _bpm_range(m.tempo_prior_bpm))
     if fps_warning:
         got.warnings.append(fps_warning)
     counts = Counter(b.signature for b in got.bars)
     signature_counts = {s: counts.get(s, 0) for s in sig.COMMON_SIGNATURES}
-    doc: dict[str, Any] = {
-        "format": FORMAT_VERSION,
-        "name": name,
-        "licence": m.licence,
-        "acknowledgement": m.acknowledgement,
-        "source": m.source,
-        "description": m.description,
-        "fps_override": m.fps,
-        "fps_reason": m.fps_reason,
-        "scale": m.scale,
-        "tempo_prior_bpm": m.tempo_prior_bpm,
-        "style_tempo_bpm": m.style_tempo_bpm,
-        "style": m.style,
-        "skeleton_source": lib.source,
-        "skeleton": lib.skeleton.to_dict(),
-        "clips": [c.to_dict() for c in got.rows],
-        "bars": [b.to_dict() for b in got.bars],
-        "failed": got.failed,
-        "excluded": got.excluded,
-        "warnings": got.warnings,
-        "signature_counts": signature_counts,
-        "partners": partner_rows(m.partners, got.grids),
-    }
+    doc = _dataset_doc(name, m, lib, got, signature_counts)
     # The version hashes what a graph is built from, not how the import went.
     content = {k: doc[k] for k in _CONTENT_KEYS}
     body = json.dumps(content, sort_keys=True, allow_nan=False).encode()
@@ -1075,6 +1059,36 @@ def _publish(
         elapsed_s=time.perf_counter() - t0,
         partners=doc["partners"],
     )
+
+
+def _dataset_doc(
+    name: str, m: Manifest, lib: _Library, got: _Takes, signature_counts: dict[str, int]
+) -> dict[str, Any]:
+    """``dataset.json``'s content before its version and data folder are added."""
+    assert lib.skeleton is not None  # set by the first imported take, and rows holds one
+    return {
+        "format": FORMAT_VERSION,
+        "name": name,
+        "licence": m.licence,
+        "acknowledgement": m.acknowledgement,
+        "source": m.source,
+        "description": m.description,
+        "fps_override": m.fps,
+        "fps_reason": m.fps_reason,
+        "scale": m.scale,
+        "tempo_prior_bpm": m.tempo_prior_bpm,
+        "style_tempo_bpm": m.style_tempo_bpm,
+        "style": m.style,
+        "skeleton_source": lib.source,
+        "skeleton": lib.skeleton.to_dict(),
+        "clips": [c.to_dict() for c in got.rows],
+        "bars": [b.to_dict() for b in got.bars],
+        "failed": got.failed,
+        "excluded": got.excluded,
+        "warnings": got.warnings,
+        "signature_counts": signature_counts,
+        "partners": partner_rows(m.partners, got.grids),
+    }
 
 
 def _import_clip(
@@ -1184,52 +1198,9 @@ def _import_clip(
         if too_fast:
             flags.append("tempo_outside_prior")
 
-    # Keep the bars that lie inside the clip (an annotation may run past its end).
-    last_t = (n - 1) / fps
-    if len(bar_beats):
-        bar_beats = bar_beats[
-            (bar_beats[:, 0] >= -0.5 / fps) & (bar_beats[:, 4] <= last_t + 0.5 / fps)
-        ]
-    if cm.signatures is not None and len(cm.signatures) != len(bar_beats):
-        raise DanceGraphError(
-            f"{path.name}: {len(cm.signatures)} signatures for {len(bar_beats)} bars",
-            code="manifest_invalid",
-            field=f"clips.{cid}.signatures",
-        )
-    if len(bar_beats) == 0:
-        raise DanceGraphError(
-            f"{path.name}: {duration:.2f} s holds no whole 4-beat bar of its grid "
-            f"({_fmt(tempo_bpm if tempo_bpm is not None else float('nan'))} BPM, {source})",
-            code="take_under_one_bar",
-            field=path.name,
-        )
-    bits = tempo_mod.bar_signature_bits(kb, bar_beats)
-    nearest = sig.nearest_common(bits) if len(bits) else np.zeros(0, dtype=int)
-    fit = tempo_mod.grid_fit(kb, bar_beats) if len(bar_beats) else 0.0
-
-    clip_bars: list[BarInfo] = []
-    for i, bb in enumerate(bar_beats):
-        if cm.signatures is not None:
-            raw = snapped = cm.signatures[i]
-        else:
-            raw = sig.to_string(bits[i])
-            snapped = sig.COMMON_SIGNATURES[int(nearest[i])]
-        start_f = int(np.clip(round(bb[0] * fps), 0, n - 1))
-        end_f = int(np.clip(round(bb[4] * fps), start_f + 1, n))
-        clip_bars.append(
-            BarInfo(
-                clip_id=cid,
-                index=i,
-                start_frame=start_f,
-                end_frame=end_f,
-                start_s=float(bb[0]),
-                end_s=float(bb[4]),
-                beat_times=np.asarray(bb, dtype=float),
-                signature=snapped,
-                style=style,
-                signature_raw=raw,
-            )
-        )
+    bar_beats = _bars_inside(bar_beats, n, fps, cm, cid, path.name, f"{tempo_bpm} BPM, {source}")
+    clip_bars = _cut_bars(cid, bar_beats, kb, cm.signatures, fps, n, style)
+    fit = tempo_mod.grid_fit(kb, bar_beats)
     row = ClipInfo(
         id=cid,
         file=path.name,
@@ -1260,6 +1231,72 @@ def _import_clip(
         "kinematic_beats": kb,
     }
     return row, clip_bars, arrays
+
+
+def _bars_inside(
+    bar_beats: np.ndarray, n: int, fps: float, cm: ClipManifest, cid: str, name: str, grid: str
+) -> np.ndarray:
+    """The bars ``(B, 5)`` s lying inside the take's ``n`` frames (an annotation or a music
+    grid may run past them); ``take_under_one_bar`` when none does (``grid`` says which grid),
+    ``manifest_invalid`` when the manifest's signatures do not count them."""
+    last_t = (n - 1) / fps
+    if len(bar_beats):
+        bar_beats = bar_beats[
+            (bar_beats[:, 0] >= -0.5 / fps) & (bar_beats[:, 4] <= last_t + 0.5 / fps)
+        ]
+    if cm.signatures is not None and len(cm.signatures) != len(bar_beats):
+        raise DanceGraphError(
+            f"{name}: {len(cm.signatures)} signatures for {len(bar_beats)} bars",
+            code="manifest_invalid",
+            field=f"clips.{cid}.signatures",
+        )
+    if len(bar_beats) == 0:
+        raise DanceGraphError(
+            f"{name}: {n / fps:.2f} s holds no whole 4-beat bar of its grid ({grid})",
+            code="take_under_one_bar",
+            field=name,
+        )
+    return bar_beats
+
+
+def _cut_bars(
+    cid: str,
+    bar_beats: np.ndarray,
+    kb: np.ndarray,
+    signatures: list[str] | None,
+    fps: float,
+    n: int,
+    style: str,
+) -> list[BarInfo]:
+    """The take's bars ``(B, 5)`` s as ``BarInfo``: frames ``[start, end)`` of ``n`` at
+    ``fps``, each labelled with the rhythm signature of its kinematic beats ``kb`` (s) snapped
+    to the nearest common one, or with the manifest's ``signatures``."""
+    bits = tempo_mod.bar_signature_bits(kb, bar_beats)
+    nearest = sig.nearest_common(bits) if len(bits) else np.zeros(0, dtype=int)
+    out: list[BarInfo] = []
+    for i, bb in enumerate(bar_beats):
+        if signatures is not None:
+            raw = snapped = signatures[i]
+        else:
+            raw = sig.to_string(bits[i])
+            snapped = sig.COMMON_SIGNATURES[int(nearest[i])]
+        start_f = int(np.clip(round(bb[0] * fps), 0, n - 1))
+        end_f = int(np.clip(round(bb[4] * fps), start_f + 1, n))
+        out.append(
+            BarInfo(
+                clip_id=cid,
+                index=i,
+                start_frame=start_f,
+                end_frame=end_f,
+                start_s=float(bb[0]),
+                end_s=float(bb[4]),
+                beat_times=np.asarray(bb, dtype=float),
+                signature=snapped,
+                style=style,
+                signature_raw=raw,
+            )
+        )
+    return out
 
 
 def _music_grid(
