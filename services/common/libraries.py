@@ -593,3 +593,22 @@ def requeue_waiting(session: Session, row_id: int, now: datetime) -> None:
         .values(stage="requeued", updated_at=now)
         .execution_options(synchronize_session=False)
     )
+
+
+def candidates(
+    session: Session, store: ObjectStore, tenant_id: str | None, names: list[str] | None
+) -> dict[str, tuple[str, str]]:
+    """Library name → (graph name, graph version) of the libraries a style choice picks among:
+    ``names`` (a spec's list; each must resolve, else ``unknown_dataset``), or with None every
+    library the tenant may use (its own built ones and the public ones with a graph)."""
+    from dancegraph.errors import NotFoundError as Missing
+
+    if names is not None:
+        return {n: resolve(session, store, tenant_id, n) for n in names}
+    out = {}
+    for row in visible_rows(session, tenant_id) if tenant_id else []:
+        try:
+            out[row.name] = resolve(session, store, tenant_id, row.name)
+        except Missing:  # still building, failed, or a public name without a graph
+            continue
+    return out

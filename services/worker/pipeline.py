@@ -165,6 +165,34 @@ def search(
     return graphstore_client(settings).search(analysis, spec, version)
 
 
+def choose_dataset(store: ObjectStore, job, spec: Spec) -> tuple[Spec, dict | None]:
+    """A spec naming a list of libraries or a ``style`` (``auto``: every library the tenant may
+    use) on the one library ``graph.style_choice.resolve`` picks for the song (analysed at the
+    spec's tempo range, else as tracked), and the choice with each candidate's scores, by the
+    libraries' names; a spec naming one library, or a job that pinned one already, as it is."""
+    from dancegraph.graph.style_choice import resolve
+    from dancegraph.spec import parse_spec
+    from services.common.libraries import candidates
+
+    if job.dataset_graph or (isinstance(spec.dataset, str) and spec.style is None):
+        return spec, None
+    listed = spec.libraries() if isinstance(spec.dataset, list) else None
+    with session_scope() as session:
+        pins = candidates(session, store, job.tenant_id, listed)
+    graphs = {name: load_graph(store, graph, version) for name, (graph, version) in pins.items()}
+    rng = tuple(spec.tempo_range) if spec.tempo_range else None
+    song = analyze(store, job.audio_key, job.audio_sha256, job.audio_filename, rng)  # type: ignore[arg-type]
+    chosen, choice = resolve(spec, song, graphs)
+    assert choice is not None  # a list or a style always chooses
+    named = {g.name: name for name, g in graphs.items()}  # graph name → library name
+    reason = choice["reason"]
+    for graph, name in named.items():
+        reason = reason.replace(graph, name)
+    rows = [{**c, "name": named.get(c["name"], c["name"])} for c in choice["candidates"]]
+    choice = {**choice, "chosen": named[choice["chosen"]], "reason": reason, "candidates": rows}
+    return parse_spec(chosen, dataset=choice["chosen"]), choice
+
+
 def pin_dataset(store: ObjectStore, job, spec: Spec) -> tuple[Spec, dict]:
     """The spec on the graph the job pinned when it started (``libraries.pin_job``: the
     tenant's newest built version of ``spec.dataset``, else the public library's current
@@ -394,7 +422,10 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "analyze", STAGES["analyze"])
+        spec, choice = choose_dataset(store, job, spec)
         spec, library = pin_dataset(store, job, spec)
+        if choice is not None:
+            library["choice"] = choice
         tempo_range = style_tempo_range(store, spec, library["graph_version"])
         analysis = analyze(
             store, job.audio_key, job.audio_sha256, job.audio_filename, tempo_range,

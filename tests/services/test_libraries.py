@@ -316,3 +316,50 @@ def test_dataset_push_uploads_a_folder_and_waits_for_the_build(sqlite_api, demo_
     assert len(out["takes"]) == len(list(demo_dir.glob("*.bvh"))) and out["nodes"] > 0
     refused = push_library(sqlite_api.client, demo_dir, sqlite_api.key, name="cmu-salsa")
     assert refused["status"] == "refused" and refused["problem"]["code"] == "dataset_read_only"
+
+
+def test_a_style_or_a_list_picks_among_the_tenants_libraries_and_says_why(
+    sqlite_api, demo_dir, tmp_path
+):
+    sent = enqueued(sqlite_api)
+    for name, style in (("grooves", "groove"), ("pops", "pop")):
+        takes = [p for p in take_parts(demo_dir) if p[1][0].startswith(style)]
+        sent_names = {t[1][0] for t in takes}
+        clips = json.loads((demo_dir / "manifest.json").read_text())["clips"]
+        manifest = manifest_part(
+            demo_dir, style=style, clips={k: v for k, v in clips.items() if v["file"] in sent_names}
+        )
+        files = [("name", (None, name)), manifest, *takes]
+        assert sqlite_api.post("/v1/datasets", files=files).status_code == 202
+    build(sqlite_api, sent)
+    wav, _ = demo_song(tmp_path)
+    chosen = {}
+    for key, spec in (
+        ("auto", {"style": "auto"}),
+        ("pop", {"style": "pop"}),
+        ("list", {"dataset": ["grooves", "pops"]}),
+    ):
+        full = {**spec, "alternatives": 1, "output": {"formats": ["bvh"]}}
+        if "dataset" not in spec:
+            full["dataset"] = "grooves"
+        resp = sqlite_api.submit(wav.read_bytes(), full)
+        assert resp.status_code == 202, resp.text
+        job_id = resp.json()["id"]
+        assert pipeline.run_job(job_id, sqlite_api.settings).status == "succeeded"
+        library = sqlite_api.get(f"/v1/jobs/{job_id}/timeline.json").json()["provenance"]["library"]
+        choice = library["choice"]
+        assert choice["chosen"] == library["name"] and choice["reason"].startswith(library["name"])
+        names = {c["name"] for c in choice["candidates"]}
+        assert names == ({"pops"} if key == "pop" else {"grooves", "pops"}), choice
+        assert all(
+            {"tempo_cost", "style_distance", "score"} <= set(c) for c in choice["candidates"]
+        )
+        chosen[key] = library["name"]
+    assert chosen["pop"] == "pops" and chosen["auto"] == chosen["list"]
+    unknown = sqlite_api.submit(wav.read_bytes(), {"dataset": "grooves", "style": "waltz"})
+    job_id = unknown.json()["id"]
+    from services.worker import tasks
+
+    tasks.run_job.apply(args=[job_id])
+    failed = sqlite_api.get(f"/v1/jobs/{job_id}").json()
+    assert failed["status"] == "failed" and failed["error"]["code"] == "style_unknown", failed
