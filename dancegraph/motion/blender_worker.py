@@ -310,31 +310,31 @@ def _euler_continuous(e):
     """``(F, B, 3)`` XYZ Euler angles, each frame's the equivalent nearest the previous frame's
     (the other solution ``(x + π, π - y, z + π)`` and whole turns), as Blender's compat does.
 
-    Whole turns are removed along time at once; only a bone whose angles still jump (a pass near
-    gimbal lock, where the other solution is the nearer one) is walked frame by frame."""
-    import numpy as np
-
-    out = np.unwrap(e, axis=0)
-    jumpy = (np.abs(np.diff(out, axis=0)) > np.pi / 2).any(axis=(0, 2))
-    if jumpy.any():
-        out[:, jumpy] = _euler_walk(e[:, jumpy])
-    return out
-
-
-def _euler_walk(e):
-    """:func:`_euler_continuous` frame by frame: of the two solutions, the nearer each time."""
+    Which solution is nearer depends only on the angles modulo whole turns, so the choice per
+    frame is a two-state walk over booleans (scanned in bulk); the whole turns are then
+    unwrapped at once."""
     import numpy as np
 
     turn = 2 * np.pi
     alt = np.stack([e[..., 0] + np.pi, np.pi - e[..., 1], e[..., 2] + np.pi], axis=-1)
-    out = e.copy()
-    for f in range(1, len(e)):
-        prev = out[f - 1]
-        a = e[f] + turn * np.round((prev - e[f]) / turn)
-        b = alt[f] + turn * np.round((prev - alt[f]) / turn)
-        use_b = np.abs(b - prev).sum(axis=-1) < np.abs(a - prev).sum(axis=-1)
-        out[f] = np.where(use_b[:, None], b, a)
-    return out
+    both = (e, alt)
+
+    def apart(t: int, s: int):  # (F - 1, B): solution t at f from solution s at f - 1
+        d = both[t][1:] - both[s][:-1]
+        return np.abs(d - turn * np.round(d / turn)).sum(axis=-1)
+
+    # each step maps the previous solution (0 or 1) to the next: (from 0, from 1); the steps are
+    # composed by a prefix scan (log F rounds), so no Python loop runs over the frames
+    step0, step1 = apart(1, 0) < apart(0, 0), apart(1, 1) < apart(0, 1)
+    shift = 1
+    while shift < len(step0):
+        before0, before1 = step0[:-shift], step1[:-shift]
+        after0, after1 = step0[shift:], step1[shift:]
+        step0 = np.concatenate([step0[:shift], np.where(before0, after1, after0)])
+        step1 = np.concatenate([step1[:shift], np.where(before1, after1, after0)])
+        shift *= 2
+    on_alt = np.concatenate([np.zeros((1, e.shape[1]), dtype=bool), step0])  # frame 0: principal
+    return np.unwrap(np.where(on_alt[..., None], alt, e), axis=0)
 
 
 class baked_from:
