@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -466,7 +467,7 @@ def stage_violation(root_xz: np.ndarray, stage) -> float:
     return float(over.max()) if over.size else 0.0
 
 
-def fbx_exporter(formats: list[str], exporter=None):
+def fbx_exporter(formats: Sequence[str], exporter=None):
     """``exporter`` where given; else, when ``formats`` asks for FBX, the shared warm Blender
     exporter (``motion.fbx.shared_exporter``), raising ``FbxError(code="fbx_unavailable")``
     without Blender; else None. One check for every renderer that writes FBX."""

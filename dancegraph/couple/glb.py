@@ -104,7 +104,10 @@ def write_couple_glb(dancers: dict[str, Motion], path: str | Path) -> dict:
     motions = list(dancers.values())
     if len({(m.n_frames, m.fps) for m in motions}) != 1:
         raise ValueError("the dancers of one GLB need the same frame count and rate")
-    buf, nodes, channels, skins = _Buffer(), [], [], []
+    buf = _Buffer()
+    nodes: list[dict] = []
+    channels: list[tuple[int, str, int]] = []
+    skins: list[dict] = []
     times = np.arange(motions[0].n_frames) / motions[0].fps
     groups = [_dancer(name, m, buf, nodes, channels, skins) for name, m in dancers.items()]
     t_in = buf.add(times, "SCALAR", bounds=True)

@@ -64,7 +64,7 @@ from dancegraph.store import ObjectStore
 #: the couple graph of dataset ``<name>`` is stored as the graph ``<name>.couple``
 COUPLE_SUFFIX = ".couple"
 #: quantile of the library's change of relative placement over one beat that a cut may show
-PLACEMENT_QUANTILE = 0.5
+PLACEMENT_QUANTILE = 0.75
 #: arrays a couple graph holds beyond ``artifact.ARRAYS``
 COUPLE_ARRAYS = ("follow_root", "follow_rotations", "rel_entry", "rel_exit")
 
@@ -249,7 +249,7 @@ def _keep_cheapest(cost: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
     order = np.argsort(masked, axis=1, kind="stable")[:, :k]
     keep = np.zeros_like(allowed)
     np.put_along_axis(keep, order, True, axis=1)
-    return keep & allowed
+    return np.asarray(keep & allowed, dtype=bool)
 
 
 def _offset_features(
@@ -311,7 +311,8 @@ def couple_edges(
     keep = _keep_cheapest(cost, smooth, params.max_out_degree)
     keep[forced[:, 0], forced[:, 1]] = True
     dead_out = ~keep.any(axis=1)
-    fallback = np.where(match.any(axis=1)[:, None], match, ~np.eye(n, dtype=bool))
+    has_match = np.asarray(match.any(axis=1), dtype=bool)
+    fallback = np.where(has_match[:, None], match, ~np.eye(n, dtype=bool))
     keep[dead_out] |= _keep_cheapest(cost, fallback, params.min_degree)[dead_out]
     dead_in = ~keep.any(axis=0)
     keep[:, dead_in] |= _keep_cheapest(cost.T, fallback.T, params.min_degree).T[:, dead_in]

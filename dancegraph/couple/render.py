@@ -327,9 +327,10 @@ def render_couple(
             "the search result has no alternatives to render", code="render_empty"
         )
     fps = float(spec.output.fps)
-    formats = list(spec.output.formats)
+    formats = [str(f) for f in spec.output.formats]
     exporter = fbx_exporter(formats, exporter)
-    entries, files = [], []
+    entries: list[dict] = []
+    files: list[str] = []
     for k, alt in enumerate(alternatives):
         lead, follow, report = render_couple_path(
             graph,

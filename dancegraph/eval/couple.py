@@ -77,8 +77,8 @@ def evaluate_couple_result(result_dir: str | Path, lib: Library, ref: CoupleRefe
         for a in alts
     ]
     rows = [
-        {"index": a["index"], **score_couple(*dancers[k], a.get("seams", []), bars, lib, ref)}
-        for k, a in enumerate(alts)
+        {"index": a["index"], **score_couple(lead, follow, a.get("seams", []), bars, lib, ref)}
+        for a, (lead, follow) in zip(alts, dancers, strict=True)
     ]
     chance = [
         couple_scores(_frames(dancers[k][0], dancers[(k + 1) % len(alts)][1]), ref)
