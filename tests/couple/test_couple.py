@@ -26,6 +26,7 @@ from dancegraph.motion.dataset import import_dataset, load_dataset
 from dancegraph.motion.retime import BEAT0
 from dancegraph.store import FileStore
 from tests.demo import demo_song
+from tests.motion.rigs import make_rigs
 
 PAIRS = [["60_03", "61_03"], ["60_04", "61_04"]]
 
@@ -139,7 +140,9 @@ def synthesized(couple, tmp_path_factory):
     wav, song = demo_song(out)
     spec = out / "spec.json"
     spec.write_text(json.dumps({"output": {"formats": ["bvh"]}, "alternatives": 2}))
+    rig = make_rigs(out / "rigs", blender=False) / "cmu_cm.bvh"  # centimetres, another body
     argv = ["synthesize", str(wav), "--dataset", "salsa6", "--couple", "--out", str(out / "r")]
+    argv += ["--rig", str(rig), "--follow-rig", str(rig)]
     assert main([*argv, "--spec", str(spec), "--store", str(store.root)]) == 0
     return out / "r", song
 
@@ -161,6 +164,10 @@ def test_couple_files_share_frames_and_world(synthesized, couple):
         for entry in alt["bars"]:
             partners = entry["partners"]
             assert [partners["lead"]["take"], partners["follow"]["take"]] in PAIRS
+        # each partner on its own rig (here the same centimetre rig), frame for frame
+        for partner, dancer in (("lead", lead), ("follow", follow)):
+            on_rig = read_bvh(result / alt["files"][f"{partner}_rig.bvh"])
+            assert on_rig.n_frames == dancer.n_frames and alt["rig"][partner]["unit_scale"] > 0
         # one GLB holds both dancers, each its own skeleton, animated as the BVH files
         doc, blob = _read_glb(result / alt["files"]["glb"])
         assert [doc["nodes"][n]["name"] for n in doc["scenes"][0]["nodes"]] == ["lead", "follow"]
