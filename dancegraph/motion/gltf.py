@@ -318,14 +318,10 @@ def read_gltf_rig(path: str | Path):
                 p = parent_of.get(p)
             parents.append(-1 if p is None else index[p])
         names = [nodes[j].get("name") or f"joint_{j}" for j in joint_nodes]
-        ancestors = {}
-        for j, p in zip(joint_nodes, parents, strict=True):
-            if p < 0:
-                chain, a = [], parent_of.get(j)
-                while a is not None:
-                    chain.append((nodes[a].get("name") or f"node_{a}", _local_matrix(nodes[a])))
-                    a = parent_of.get(a)
-                ancestors[nodes[j].get("name") or f"joint_{j}"] = chain[::-1]
+        tops = [j for j, p in zip(joint_nodes, parents, strict=True) if p < 0]
+        ancestors = {
+            nodes[j].get("name") or f"joint_{j}": _chain(nodes, parent_of, j) for j in tops
+        }
         mats = np.stack([bind[j] for j in joint_nodes]) if joint_nodes else np.zeros((0, 4, 4))
 
         pos_all, tri_all, jnt_all, wgt_all, base = [], [], [], [], 0
@@ -373,6 +369,15 @@ def read_gltf_rig(path: str | Path):
             weights=np.concatenate(wgt_all),
         )
     return names, np.array(parents, dtype=np.int64), mats, mesh, ancestors
+
+
+def _chain(nodes: list, parent_of: dict[int, int], j: int) -> list[tuple[str, np.ndarray]]:
+    """The nodes above node ``j``, from the scene's root down: ``[(name, local (4, 4))]``."""
+    chain, a = [], parent_of.get(j)
+    while a is not None:
+        chain.append((nodes[a].get("name") or f"node_{a}", _local_matrix(nodes[a])))
+        a = parent_of.get(a)
+    return chain[::-1]
 
 
 def node_worlds(path: str | Path) -> dict[str, np.ndarray]:

@@ -88,7 +88,7 @@ def write_usd(motion, path: str | Path, rig=None) -> dict:
     ``{frames, joints, vertices, bytes}``; raises ``DanceGraphError`` (``usd_output_format``)
     for another suffix.
     """
-    from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
+    from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
@@ -98,32 +98,50 @@ def write_usd(motion, path: str | Path, rig=None) -> dict:
             field=path.name,
         )
     rig = rig if rig is not None else _Bare(motion.skeleton)
-    sk = rig.skeleton
     local, moves, sigma = joint_locals(motion, rig)
     kind = ".usdc" if path.suffix.lower() == ".usd" else path.suffix.lower()
     tmp = path.with_name(f".tmp-{os.getpid()}-{path.stem}{kind}")
-    layer = Sdf.Layer.CreateNew(str(tmp))
-    stage = Usd.Stage.Open(layer)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    stage.SetTimeCodesPerSecond(motion.fps)
-    stage.SetFramesPerSecond(motion.fps)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(motion.n_frames - 1)
-    where = Sdf.Path.absoluteRootPath
-    for name, matrix in zip(
-        _identifiers([n for n, _ in rig.ancestors]), [m for _, m in rig.ancestors], strict=True
-    ):
-        where = where.AppendChild(name)
-        xform = UsdGeom.Xform.Define(stage, where)
-        xform.AddTransformOp().Set(_gf_matrix(np.asarray(matrix, dtype=float)))
-    root = UsdSkel.Root.Define(stage, where.AppendChild("Character"))
-    stage.SetDefaultPrim(stage.GetPrimAtPath(root.GetPath().GetPrefixes()[0]))
+    try:
+        layer = Sdf.Layer.CreateNew(str(tmp))
+        stage = Usd.Stage.Open(layer)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        stage.SetTimeCodesPerSecond(motion.fps)
+        stage.SetFramesPerSecond(motion.fps)
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(motion.n_frames - 1)
+        where = Sdf.Path.absoluteRootPath
+        names = _identifiers([n for n, _ in rig.ancestors])
+        for name, (_, matrix) in zip(names, rig.ancestors, strict=True):
+            where = where.AppendChild(name)
+            xform = UsdGeom.Xform.Define(stage, where)
+            xform.AddTransformOp().Set(_gf_matrix(np.asarray(matrix, dtype=float)))
+        root = UsdSkel.Root.Define(stage, where.AppendChild("Character"))
+        stage.SetDefaultPrim(stage.GetPrimAtPath(root.GetPath().GetPrefixes()[0]))
+        skel = _write_skeleton(stage, root, rig, local, moves, sigma)
+        n_vertices = _write_mesh(stage, root, skel, rig)
+        layer.Save()
+        del stage, layer
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)  # nothing half-written is left beside the file
+    return {
+        "frames": motion.n_frames,
+        "joints": rig.skeleton.n_joints,
+        "vertices": n_vertices,
+        "bytes": path.stat().st_size,
+    }
+
+
+def _write_skeleton(stage, root, rig, local: np.ndarray, moves: np.ndarray, sigma: float):
+    """The ``Skeleton`` and its ``SkelAnimation`` (one sample per frame) under ``root``."""
+    from pxr import Sdf, UsdSkel, Vt
+
+    sk = rig.skeleton
     skel = UsdSkel.Skeleton.Define(stage, root.GetPath().AppendChild("Skeleton"))
     joints = Vt.TokenArray(_joint_paths(sk.names, sk.parents))
     skel.CreateJointsAttr(joints)
-    bind_skel = _skeleton_space_bind(rig, sigma)
-    skel.CreateBindTransformsAttr(bind_skel)
+    skel.CreateBindTransformsAttr(_skeleton_space_bind(rig, sigma))
     skel.CreateRestTransformsAttr(_matrices(local[0], moves[0]))
     anim = UsdSkel.Animation.Define(stage, root.GetPath().AppendChild("Animation"))
     anim.CreateJointsAttr(joints)
@@ -132,21 +150,12 @@ def write_usd(motion, path: str | Path, rig=None) -> dict:
     rot_xyzw = local.astype(np.float32)  # GfQuatf's memory order: imaginary part, then real
     trans = moves.astype(np.float32)
     with Sdf.ChangeBlock():  # one change notice for all samples, not one per Set
-        for f in range(motion.n_frames):
+        for f in range(len(local)):
             t_attr.Set(Vt.Vec3fArray.FromNumpy(trans[f]), f)
             r_attr.Set(Vt.QuatfArray.FromNumpy(rot_xyzw[f]), f)
     binding = UsdSkel.BindingAPI.Apply(skel.GetPrim())
     binding.CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    n_vertices = _write_mesh(stage, root, skel, rig)
-    layer.Save()
-    del stage, layer
-    tmp.replace(path)
-    return {
-        "frames": motion.n_frames,
-        "joints": sk.n_joints,
-        "vertices": n_vertices,
-        "bytes": path.stat().st_size,
-    }
+    return skel
 
 
 def _gf_matrix(m: np.ndarray):
