@@ -41,10 +41,8 @@ from dancegraph.errors import DanceGraphError
 
 T = TypeVar("T")
 
-#: Modules the fork server imports once, so a child starts with the readers loaded (and with
-#: the main module, which a child would otherwise import again on every call).
+#: Modules the fork server imports once, so a child starts with the readers loaded.
 PRELOAD = (
-    "__main__",
     "numpy",
     "scipy.spatial.transform",
     "dancegraph.motion.rig",
@@ -84,14 +82,19 @@ os.register_at_fork(after_in_child=_forget_fork_server)
 
 class _Popen(popen_forkserver.Popen):
     """The stdlib's forkserver launch (Python 3.11) with a fresh authkey of the stdlib's type
-    for the child: a Celery (billiard) pool worker's own key is billiard's type, which refuses
-    to be pickled for a multiprocessing child. Used directly, not through ``Process.start``,
-    which refuses children to a daemonic process (a pool worker is one)."""
+    for the child (a Celery (billiard) pool worker's own key is billiard's type, which refuses
+    to be pickled for a multiprocessing child) and without the caller's main module. Used
+    directly, not through ``Process.start``, which refuses children to a daemonic process (a
+    pool worker is one)."""
 
     def _launch(self, process_obj):
         process_obj.authkey = os.urandom(32)
         prep_data = spawn.get_preparation_data(process_obj._name)
         prep_data["authkey"] = process_obj.authkey
+        # nor the caller's main module: the child would import it again on every call (an API
+        # process's: hundreds of milliseconds; the fork server never preloads it in 3.11)
+        prep_data.pop("init_main_from_path", None)
+        prep_data.pop("init_main_from_name", None)
         buf = io.BytesIO()
         context.set_spawning_popen(self)
         try:
@@ -227,8 +230,8 @@ def run_sandboxed(
 ) -> T:
     """``fn(*args, **kwargs)`` in a limited child process; its result (see the module docstring).
 
-    ``fn`` must be a module-level function; arguments and result must pickle (pass paths, not
-    open files). Raises the ``DanceGraphError`` ``fn`` raised, or :class:`SandboxError`.
+    ``fn`` must be a module-level function of an importable module (not of a script run as
+    ``__main__``); arguments and result must pickle (pass paths, not open files). Raises the ``DanceGraphError`` ``fn`` raised, or :class:`SandboxError`.
     Inside a sandboxed child ``fn`` runs inline, under that child's limits.
     """
     if _inside:
