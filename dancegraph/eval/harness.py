@@ -242,6 +242,7 @@ def score_dance(
     seams=None,
     bar_beats: np.ndarray | None = None,
     other_bar_beats: np.ndarray | None = None,
+    seed: list[int] | None = None,
 ) -> Dance:
     """Every metric of one dance ``motion`` (60 fps, frame 0 = t 0 of the song).
 
@@ -250,7 +251,8 @@ def score_dance(
     ``bars (T, 2)``, ``nodes (T,)`` and ``tags``: the path on the music bars, when there is
     one (structure, controls); ``seams``: frames where bars meet. ``bar_beats (T, 5)``: the
     song's bars the dance was laid on (the pulse depth and the recovered-grid check,
-    ``naturalness_metrics``); ``other_bar_beats``: another song's, the check's chance row.
+    ``naturalness_metrics``); ``other_bar_beats``: another song's, the check's chance row (at a
+    phase drawn from ``seed``).
     """
     if abs(motion.fps - EVAL_FPS) > 1e-6:
         raise ValueError(f"score_dance needs {EVAL_FPS} fps, got {motion.fps}")
@@ -285,7 +287,7 @@ def score_dance(
         m["controls_share"] = ctl["share"]
         m["controls"] = ctl
     if bar_beats is not None:
-        m.update(naturalness_metrics(motion.skeleton, pos, world, bar_beats, other_bar_beats))
+        m.update(naturalness_metrics(motion.skeleton, pos, world, bar_beats, other_bar_beats, seed))
     lo, hi = int(round(a * fps)), max(int(round(b * fps)), int(round(a * fps)) + 3)
     smpl = smpl_all[lo:hi]
     plot = {
@@ -328,13 +330,19 @@ def sync_metrics(
 
 
 def naturalness_metrics(
-    skeleton, pos: np.ndarray, world: np.ndarray, bar_beats: np.ndarray, other=None
+    skeleton,
+    pos: np.ndarray,
+    world: np.ndarray,
+    bar_beats: np.ndarray,
+    other=None,
+    seed: list[int] | None = None,
 ) -> dict:
     """The pulse depth of a dance (world ``pos``/``world`` at ``EVAL_FPS``, frame 0 = t 0) on
     the song's beat phase (``bar_beats (B, 5)`` s) and the recovered-grid check
     (``naturalness.recovered_grid``, ``grid_check``): ``pulse_depth``, ``pulse_profile``,
     ``recovered_grid`` (the check's numbers), ``grid_passed``, and with ``other`` (another
-    song's bars, scaled to this song's tempo: ``naturalness.scaled_grid``) its chance row
+    song's bars, scaled to this song's tempo at a phase drawn from ``seed``:
+    ``naturalness.scaled_grid``) its chance row
     ``grid_passed_other`` and ``recovered_grid_other``."""
     bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
     profile = naturalness.pulse_profile(joint_speed(pos, EVAL_FPS, 0.0), EVAL_FPS, bb)
@@ -351,7 +359,7 @@ def naturalness_metrics(
     out["recovered_grid"] = naturalness.grid_check(grid, bb)
     out["grid_passed"] = float(out["recovered_grid"]["passed"])
     if other is not None:
-        chance = naturalness.grid_check(grid, naturalness.scaled_grid(other, bb))
+        chance = naturalness.grid_check(grid, naturalness.scaled_grid(other, bb, seed or 0))
         out["recovered_grid_other"] = chance
         out["grid_passed_other"] = float(chance["passed"])
     return out
@@ -571,7 +579,7 @@ def _row_dances(
         paths = _search_paths(lib.graph, analysis, row_spec(spec, row))
     span = (float(analysis.bars[0][0]), float(analysis.bars[-1][1]))
     out = []
-    for p in paths:
+    for k, p in enumerate(paths):
         motion, report = _render(lib, song, p["nodes"], p["placements"], spec)
         d = score_dance(
             lib,
@@ -586,6 +594,7 @@ def _row_dances(
             seams=report["seams"],
             bar_beats=analysis.bar_beats,
             other_bar_beats=other.analysis.bar_beats if other else None,
+            seed=[song_no, k],
         )
         d.metrics["retime"] = report["retime"]
         d.metrics["speed_factor_min"], d.metrics["speed_factor_max"] = report["retime"][

@@ -167,13 +167,18 @@ def grid_check(grid: BeatGrid, bar_beats: np.ndarray) -> dict:
     return out
 
 
-def scaled_grid(other_bar_beats: np.ndarray, bar_beats: np.ndarray) -> np.ndarray:
+def scaled_grid(
+    other_bar_beats: np.ndarray, bar_beats: np.ndarray, seed: int | list[int] = 0
+) -> np.ndarray:
     """Another song's bars ``other_bar_beats (B', 5)`` s scaled in time (about t 0) to the regular
-    beat of ``bar_beats (B, 5)``: a grid of the same tempo that the dance was not laid on, the
+    beat of ``bar_beats (B, 5)`` and moved by a phase drawn from ``seed`` (uniform over one
+    4-beat bar): a grid of the same tempo that the dance was not laid on, at a phase of its own
+    (songs that start alike, as generated ones do, would otherwise line up), the
     recovered-grid check's chance row."""
     ob = np.asarray(other_bar_beats, dtype=float).reshape(-1, 5)
-    bb = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
-    return ob * (beat_period(bb) / beat_period(ob))
+    beat = beat_period(bar_beats)
+    shift = np.random.default_rng(seed).uniform(0.0, 4.0) * beat
+    return ob * (beat / beat_period(ob)) + shift
 
 
 # --------------------------------------------------------------------------------------------
