@@ -131,24 +131,28 @@ def build(spec: dict, out_dir: str) -> None:
                 point.co.x *= 1.1
             key.value = 0.25
     for fmt in spec.get("formats", ["fbx"]):
-        path = os.path.join(out_dir, f"{spec['name']}.{fmt}")
-        if fmt == "fbx":
-            up, fwd = ("Z", "Y") if spec.get("z_up") else ("Y", "-Z")
-            bpy.ops.export_scene.fbx(
-                filepath=path,
-                object_types={"ARMATURE", "MESH", "EMPTY"},
-                axis_up=up,
-                axis_forward=fwd,
-                add_leaf_bones=False,
-                bake_anim=False,
-                apply_scale_options="FBX_SCALE_NONE" if spec.get("fbx_cm") else "FBX_SCALE_ALL",
-            )
-            if spec.get("prerot"):
-                move_to_pre_rotations(path)
-        else:
-            bpy.ops.export_scene.gltf(
-                filepath=path, export_format="GLB", export_animations=False, export_skins=True
-            )
+        write(spec, os.path.join(out_dir, f"{spec['name']}.{fmt}"), fmt)
+
+
+def write(spec: dict, path: str, fmt: str) -> None:
+    """The scene as FBX (the spec's axes and units, pre-rotations if asked) or GLB."""
+    if fmt == "fbx":
+        up, fwd = ("Z", "Y") if spec.get("z_up") else ("Y", "-Z")
+        bpy.ops.export_scene.fbx(
+            filepath=path,
+            object_types={"ARMATURE", "MESH", "EMPTY"},
+            axis_up=up,
+            axis_forward=fwd,
+            add_leaf_bones=False,
+            bake_anim=False,
+            apply_scale_options="FBX_SCALE_NONE" if spec.get("fbx_cm") else "FBX_SCALE_ALL",
+        )
+        if spec.get("prerot"):
+            move_to_pre_rotations(path)
+    else:
+        bpy.ops.export_scene.gltf(
+            filepath=path, export_format="GLB", export_animations=False, export_skins=True
+        )
 
 
 def move_to_pre_rotations(path: str) -> None:

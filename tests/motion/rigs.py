@@ -260,6 +260,28 @@ def _twist(bones: list[dict], name: str, new: str) -> None:
     bones.append({"name": new, "parent": name, "head": mid, "tail": b["tail"]})
 
 
+def _parented_specs(mixamo: dict[str, str], no_fingers: set[str]) -> list[dict]:
+    """The rigs whose skeleton sits under parent transforms (see ``PARENTED_RIGS``)."""
+    return [
+        {
+            "name": "parented",
+            "bones": _bones(_template(legs=1.02), _UNITY),
+            "mesh": True,
+            "formats": ["glb"],
+            "parent": {"name": "Root", "rotation_x_deg": -90.0, "scale": 0.01},
+        },
+        {
+            "name": "prerot",
+            "bones": _bones(_template(legs=1.08, arms=0.95), mixamo, no_fingers),
+            "mesh": True,
+            "cm": True,
+            "fbx_cm": True,
+            "prerot": True,
+            "shape_key": True,
+        },
+    ]
+
+
 def rig_specs() -> list[dict]:
     """Every Blender-made rig: ``name``, ``bones``, ``mesh`` (bool), ``formats``, ``cm``, ``face_y``."""
     specs = []
@@ -312,26 +334,7 @@ def rig_specs() -> list[dict]:
             "formats": ["fbx", "glb"],
         }
     )
-    specs.append(
-        {
-            "name": "parented",
-            "bones": _bones(_template(legs=1.02), _UNITY),
-            "mesh": True,
-            "formats": ["glb"],
-            "parent": {"name": "Root", "rotation_x_deg": -90.0, "scale": 0.01},
-        }
-    )
-    specs.append(
-        {
-            "name": "prerot",
-            "bones": _bones(_template(legs=1.08, arms=0.95), mixamo, no_fingers),
-            "mesh": True,
-            "cm": True,
-            "fbx_cm": True,
-            "prerot": True,
-            "shape_key": True,
-        }
-    )
+    specs += _parented_specs(mixamo, no_fingers)
     # bad rigs
     specs.append({"name": "bad_no_armature", "bones": [], "mesh": True})
     keep = {k for k in _MIXAMO if not k.endswith(("hip", "knee", "ankle", "toe"))} & no_fingers
@@ -442,18 +445,15 @@ def skin_in_armature_space(path: Path) -> None:
     nodes = doc["nodes"]
     parent = {c: i for i, n in enumerate(nodes) for c in n.get("children", [])}
 
-    def local(i: int) -> np.ndarray:
-        m = np.eye(4)
-        m[:3, :3] = Rotation.from_quat(nodes[i].get("rotation", [0, 0, 0, 1])).as_matrix()
-        m[:3, :3] *= np.asarray(nodes[i].get("scale", [1, 1, 1]))[None, :]
-        m[:3, 3] = nodes[i].get("translation", [0, 0, 0])
-        return m
-
     skin = doc["skins"][0]
     top = next(j for j in skin["joints"] if parent.get(j) not in skin["joints"])
     arm, a = np.eye(4), parent.get(top)
-    while a is not None:
-        arm, a = local(a) @ arm, parent.get(a)
+    while a is not None:  # the armature's world matrix: its nodes' scale, rotation, translation
+        local = np.eye(4)
+        rotation = Rotation.from_quat(nodes[a].get("rotation", [0, 0, 0, 1])).as_matrix()
+        local[:3, :3] = rotation * np.asarray(nodes[a].get("scale", [1, 1, 1]))[None, :]
+        local[:3, 3] = nodes[a].get("translation", [0, 0, 0])
+        arm, a = local @ arm, parent.get(a)
 
     def view(k: int, width: int) -> np.ndarray:
         acc = doc["accessors"][k]
