@@ -139,6 +139,39 @@ def hold(motion: Motion, before: int, after: int) -> Motion:
     return Motion(motion.skeleton, motion.fps, motion.root_positions[idx], motion.rotations[idx])
 
 
+def check_path(nodes: Sequence[str], bar_beats: np.ndarray) -> None:
+    """Raise ``DanceGraphError`` unless ``nodes`` name one node per bar of ``bar_beats (B, 5)``
+    (``render_mismatch``) and there is a bar (``render_empty``)."""
+    if len(nodes) != len(bar_beats):
+        raise DanceGraphError(
+            f"the path has {len(nodes)} nodes for {len(bar_beats)} music bars",
+            code="render_mismatch",
+            field="nodes",
+        )
+    if len(bar_beats) == 0:
+        raise DanceGraphError("the song has no bars to dance", code="render_empty", field="bars")
+
+
+def ground_extent(xz: np.ndarray) -> dict:
+    """``{"x": [min, max], "z": [min, max]}`` (m) of ground positions ``xz (F, 2)``."""
+    return {
+        "x": [float(xz[:, 0].min()), float(xz[:, 0].max())],
+        "z": [float(xz[:, 1].min()), float(xz[:, 1].max())],
+    }
+
+
+def search_alternatives(result: SearchResult) -> tuple[dict, list[dict]]:
+    """``result.to_dict()`` and its alternatives; ``DanceGraphError(code="render_empty")`` when
+    it has none."""
+    found = result.to_dict()
+    alternatives = found.get("alternatives") or []
+    if not alternatives:
+        raise DanceGraphError(
+            "the search result has no alternatives to render", code="render_empty"
+        )
+    return found, alternatives
+
+
 def render_path(
     graph: MotionGraph,
     nodes: list[str],
@@ -174,14 +207,7 @@ def render_path(
     from dancegraph.motion.stitch import CUT_BEATS, stitch
 
     bar_beats = np.asarray(bar_beats, dtype=float).reshape(-1, 5)
-    if len(nodes) != len(bar_beats):
-        raise DanceGraphError(
-            f"the path has {len(nodes)} nodes for {len(bar_beats)} music bars",
-            code="render_mismatch",
-            field="nodes",
-        )
-    if len(bar_beats) == 0:
-        raise DanceGraphError("the song has no bars to dance", code="render_empty", field="bars")
+    check_path(nodes, bar_beats)
     frames = bar_frames(bar_beats[:, [0, 4]], fps)
     pieces = []
     for b, node_id in enumerate(nodes):
@@ -241,11 +267,7 @@ def render_path(
         total = max(total, int(round(duration_s * fps)))
     dance = hold(dance, int(frames[0, 0]), total - int(frames[-1, 1]))
     report["frames"] = frames.tolist()
-    xz = dance.root_positions[:, [0, 2]]
-    report["stage"] = {
-        "x": [float(xz[:, 0].min()), float(xz[:, 0].max())],
-        "z": [float(xz[:, 1].min()), float(xz[:, 1].max())],
-    }
+    report["stage"] = ground_extent(dance.root_positions[:, [0, 2]])
     return dance, report
 
 
@@ -520,12 +542,7 @@ def render(
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
-    found = result.to_dict()
-    alternatives = found.get("alternatives") or []
-    if not alternatives:
-        raise DanceGraphError(
-            "the search result has no alternatives to render", code="render_empty"
-        )
+    found, alternatives = search_alternatives(result)
     fps = float(spec.output.fps)
     formats = list(spec.output.formats)
     exporter = fbx_exporter(formats, exporter)

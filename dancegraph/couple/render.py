@@ -49,10 +49,13 @@ from dancegraph.render import (
     _music_bar,
     _provenance,
     bar_frames,
+    check_path,
     fbx_exporter,
     follow_plan,
+    ground_extent,
     hold,
     place,
+    search_alternatives,
     song_summary,
     stage_violation,
     to_json_types,
@@ -164,14 +167,7 @@ def _plan_couple(
 
 
 def _check_path(nodes: list[str], bar_beats: np.ndarray, plan) -> None:
-    if len(nodes) != len(bar_beats):
-        raise DanceGraphError(
-            f"the path has {len(nodes)} nodes for {len(bar_beats)} music bars",
-            code="render_mismatch",
-            field="nodes",
-        )
-    if len(bar_beats) == 0:
-        raise DanceGraphError("the song has no bars to dance", code="render_empty", field="bars")
+    check_path(nodes, bar_beats)
     if plan is not None and len(plan) != len(bar_beats):
         raise DanceGraphError(
             f"{len(plan)} placements for {len(bar_beats)} bars",
@@ -242,11 +238,9 @@ def render_couple_path(
     for key in PARTNERS:
         dancers[key] = hold(dancers[key], first, total - int(frames[-1, 1]))
     report["frames"] = frames.tolist()
-    xz = _centre(dancers["lead"], dancers["follow"]).root_positions[:, [0, 2]]
-    report["stage"] = {
-        "x": [float(xz[:, 0].min()), float(xz[:, 0].max())],
-        "z": [float(xz[:, 1].min()), float(xz[:, 1].max())],
-    }
+    report["stage"] = ground_extent(
+        _centre(dancers["lead"], dancers["follow"]).root_positions[:, [0, 2]]
+    )
     return dancers["lead"], dancers["follow"], report
 
 
@@ -320,12 +314,7 @@ def render_couple(
         )
     t0 = time.perf_counter()
     out = Path(out_dir)
-    found = result.to_dict()
-    alternatives = found.get("alternatives") or []
-    if not alternatives:
-        raise DanceGraphError(
-            "the search result has no alternatives to render", code="render_empty"
-        )
+    found, alternatives = search_alternatives(result)
     fps = float(spec.output.fps)
     formats = [str(f) for f in spec.output.formats]
     exporter = fbx_exporter(formats, exporter)
