@@ -380,3 +380,30 @@ def test_preview_shows_the_dance_on_the_rig(result, built, tmp_path):
     # without rig files the page offers none
     with TestClient(create_local_app(result / "out", result / "song.wav")) as client:
         assert "rig_poses" not in page_config(client.get("/").text)
+
+
+def test_preview_serves_the_character_of_a_job_on_a_rig(api, result, built, tmp_path):
+    """A job with ``<k>.rig.glb`` files: the page gets their URLs (the character it draws), and
+    the signed URL answers the GLB itself; another index is a 404, no token a 401."""
+    from dancegraph.motion.retarget import RigOutput
+    from dancegraph.motion.rig import load_rig
+    from tests.motion.rigs import make_rigs
+
+    out = tmp_path / "out"
+    shutil.copytree(result / "out", out)
+    rig_path = make_rigs(tmp_path / "rigs", blender=False) / "cmu_cm.bvh"
+    hook = RigOutput(load_rig(rig_path), rig_path, ["bvh", "glb"])
+    for k in range(2):
+        hook(k, read_bvh(out / f"alternatives/{k}.bvh"), out)
+    job_id = api.submit((result / "song.wav").read_bytes(), {"alternatives": 2}).json()["id"]
+    finish_with(api, job_id, out)
+    page = api.client.get(api.get(f"/v1/jobs/{job_id}").json()["preview_url"])
+    config = page_config(page.text)
+    assert len(config["rig_models"]) == 2
+    glb = api.client.get(config["rig_models"][1])
+    assert glb.status_code == 200 and glb.headers["content-type"] == "model/gltf-binary"
+    assert glb.content == (out / "alternatives/1.rig.glb").read_bytes()
+    missing = config["rig_models"][1].replace("/rig/1.glb", "/rig/5.glb")
+    assert api.client.get(missing).json()["code"] == "result_not_found"
+    bare = config["rig_models"][0].split("?")[0]
+    assert api.client.get(bare).status_code == 401
