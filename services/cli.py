@@ -192,11 +192,13 @@ def push_library(
     parts: list = [("name", (None, name))]
     handles = []
     try:
-        for role, path in [("manifest", mpath)] * (mpath is not None) + [
+        sending = [("manifest", mpath)] if mpath is not None else []
+        sending += [
             ("takes" if p.suffix.lower() in TAKE_SUFFIXES else "audio", p)
             for p in files
             if p.suffix.lower() in TAKE_SUFFIXES + AUDIO_SUFFIXES
-        ]:
+        ]
+        for role, path in sending:
             handles.append(open(path, "rb"))  # noqa: SIM115 - closed below, after the upload
             parts.append((role, (path.name, handles[-1], "application/octet-stream")))
         resp = client.post("/v1/datasets", files=parts, headers={"X-API-Key": key})

@@ -314,6 +314,16 @@ def _check_named_files(manifest: dict, takes: set[str], audio: set[str]) -> None
                 )
 
 
+def read_only(name: str) -> ApiError:
+    """403 ``dataset_read_only``: ``name`` is a public library, which tenants cannot change."""
+    return ApiError(
+        403,
+        "dataset_read_only",
+        f"{name!r} is a public library: it cannot be changed",
+        field="name",
+    )
+
+
 def check_name(session: Session, settings: Settings, tenant_id: str, name: str | None) -> str:
     """The library name an upload goes to: valid, not a public library's (403
     ``dataset_read_only``), within the tenant's library limit (422 ``library_limit``)."""
@@ -325,12 +335,7 @@ def check_name(session: Session, settings: Settings, tenant_id: str, name: str |
             field="name",
         )
     if public_row(session, name) is not None:
-        raise ApiError(
-            403,
-            "dataset_read_only",
-            f"{name!r} is a public library: it cannot be changed",
-            field="name",
-        )
+        raise read_only(name)
     names = set(
         session.scalars(
             _live(select(Dataset.name).where(Dataset.tenant_id == tenant_id)).distinct()
@@ -528,12 +533,7 @@ def delete_library(session: Session, tenant_id: str, name: str) -> int:
     rows = own_rows(session, tenant_id, name)
     if not rows:
         if public_row(session, name) is not None:
-            raise ApiError(
-                403,
-                "dataset_read_only",
-                f"{name!r} is a public library: it cannot be deleted",
-                field="name",
-            )
+            raise read_only(name)
         raise ApiError(404, "unknown_dataset", f"no dataset named {name!r}", field="name")
     now = utcnow()
     for row in rows:

@@ -200,7 +200,8 @@ class LocalGraphStore(GraphStoreClient):
     ) -> SearchResult:
         from dancegraph.graph.search import search
 
-        graph = self.graph_version(spec.dataset, version) if version else self.graph(spec.dataset)
+        name = single_library(spec)
+        graph = self.graph_version(name, version) if version else self.graph(name)
         return search(graph, analysis, spec)
 
     def _node_index(self, graph: artifact.MotionGraph, node_id: str) -> int:
@@ -223,6 +224,18 @@ class LocalGraphStore(GraphStoreClient):
     def node_motion(self, dataset: str, node_id: str) -> Motion:
         graph = self.graph(dataset)
         return graph.node_motion(self._node_index(graph, node_id))
+
+
+def single_library(spec: Spec) -> str:
+    """The one library a search runs on; SpecError ``spec_invalid`` for a spec still naming a
+    list (the worker resolves a list or a style to one library before it searches)."""
+    if not isinstance(spec.dataset, str):
+        raise SpecError(
+            "a search runs on one library: choose one from the list first",
+            code="spec_invalid",
+            field="spec.dataset",
+        )
+    return spec.dataset
 
 
 def graph_nbytes(graph: artifact.MotionGraph) -> int:
@@ -336,7 +349,9 @@ class HttpGraphStore(GraphStoreClient):
     ) -> SearchResult:
         body = {"analysis": analysis.to_dict(), "spec": spec.model_dump(mode="json")}
         params = {"version": version} if version else None
-        data = self._call("POST", f"/v1/graphs/{spec.dataset}/search", json=body, params=params)
+        data = self._call(
+            "POST", f"/v1/graphs/{single_library(spec)}/search", json=body, params=params
+        )
         try:
             return SearchResult.from_dict(data)
         except (KeyError, TypeError, ValueError) as exc:

@@ -157,8 +157,9 @@ def _after_fork(**_kwargs) -> None:
     import multiprocessing.process as mp_process
 
     me = mp_process.current_process()
-    if not isinstance(me.authkey, mp_process.AuthenticationString):
-        me._config["authkey"] = mp_process.AuthenticationString(bytes(me.authkey))
+    plain = mp_process.AuthenticationString  # type: ignore[attr-defined]
+    if not isinstance(me.authkey, plain):
+        me._config["authkey"] = plain(bytes(me.authkey))  # type: ignore[attr-defined]
     logging.getLogger("dancegraph.worker").info("worker process ready", extra={"pid": os.getpid()})
 
 

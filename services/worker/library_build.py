@@ -357,7 +357,7 @@ def _extract_zip(archive: Path, dest: Path, caps: dict) -> None:
     try:
         with zipfile.ZipFile(archive) as zf:
             infos = zf.infolist()
-            rows = []
+            rows: list[tuple[str, int, int | None, bool]] = []
             for i in infos:
                 is_link = (i.external_attr >> 16) & 0o170000 == 0o120000
                 rows.append((i.filename, i.file_size, i.compress_size, not is_link))

@@ -42,7 +42,7 @@ from services.common.rigs import job_rig_output, write_rig_fbx
 from services.config import Settings, get_settings
 from services.config import object_store as settings_store
 from services.db import session_scope
-from services.graphstore.client import GraphStoreClient
+from services.graphstore.client import GraphStoreClient, single_library
 from services.models import SUCCEEDED
 from services.worker import state
 
@@ -129,7 +129,7 @@ def style_tempo_range(
     from dancegraph.render import style_tempo_range as for_graph
 
     try:
-        graph = load_graph(store, spec.dataset, version)
+        graph = load_graph(store, single_library(spec), version)
     except DanceGraphError:
         graph = None
     return for_graph(spec, graph)
@@ -200,7 +200,7 @@ def pin_dataset(store: ObjectStore, job, spec: Spec) -> tuple[Spec, dict]:
     from services.common.libraries import pin_job
 
     with session_scope() as session:
-        graph, version = pin_job(session, store, job, spec.dataset)
+        graph, version = pin_job(session, store, job, spec.libraries()[0])  # one, once chosen
     library = {"name": spec.dataset, "graph": graph, "graph_version": version}
     return spec.model_copy(update={"dataset": graph}), library
 
@@ -261,7 +261,7 @@ def render(
 
     here = ["bvh", *(["usd"] if "usd" in spec.output.formats else [])]  # FBX: the fbx queue's
     bvh_spec = spec.model_copy(update={"output": spec.output.model_copy(update={"formats": here})})
-    graph = load_graph(store, spec.dataset, found.graph_version or None)
+    graph = load_graph(store, single_library(spec), found.graph_version or None)
     tmp = store.temp_dir(f"job-{job_id}")
     try:
         extra = {k: v for k, v in (("audio", audio), ("library", library)) if v} or None
@@ -442,7 +442,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
             finalize(store, job_id)
             return RunOutcome("succeeded", files)
         version = library["graph_version"]
-        terms = with_learned_terms(store, job.audio_key, analysis, spec.dataset, version)
+        terms = with_learned_terms(store, job.audio_key, analysis, library["graph"], version)
         found = search(settings, spec, terms, version)
         beat.check()
         state.progress(job_id, "render", STAGES["render"])
