@@ -46,19 +46,20 @@ def spec_json(spec: Spec) -> dict:
 
 
 def check_rig(settings: Settings, tenant_id: str, spec: Spec) -> None:
-    """422 ``unknown_rig`` when ``spec.output.rig`` names no rig of this tenant."""
-    if spec.output.rig is None:
-        return
+    """422 ``unknown_rig`` when ``spec.output.rig`` (or a couple's ``output.follow_rig``) names
+    no rig of this tenant."""
     from services.common.rigs import find_rig
 
+    named = {"rig": spec.output.rig, "follow_rig": spec.output.follow_rig}
     with session_scope(settings.database_url) as session:
-        if find_rig(session, tenant_id, spec.output.rig) is None:
-            raise ApiError(
-                422,
-                "unknown_rig",
-                f"you have no rig {spec.output.rig!r} (POST /v1/rigs first)",
-                field="spec.output.rig",
-            )
+        for field, rig_id in named.items():
+            if rig_id is not None and find_rig(session, tenant_id, rig_id) is None:
+                raise ApiError(
+                    422,
+                    "unknown_rig",
+                    f"you have no rig {rig_id!r} (POST /v1/rigs first)",
+                    field=f"spec.output.{field}",
+                )
 
 
 def _key_reused() -> ApiError:

@@ -280,11 +280,14 @@ def render_couple_result(
     spec: Spec,
     analysis: MusicAnalysis,
     audio: dict[str, str] | None = None,
+    rigs: dict | None = None,
 ) -> list[str]:
     """A couple job (``spec.couple``): the search on ``spec.dataset``'s couple graph in this
     process (``couple.graph.open_couple_graph``; the graph store serves solo graphs) and the
-    render for two (``alternatives/<k>/lead.bvh`` and ``follow.bvh``, BVH only: the fbx queue
-    converts solo alternatives), published at ``jobs/<job_id>/``; returns the file names.
+    render for two (``alternatives/<k>/lead.bvh``, ``follow.bvh`` and ``couple.glb``, no FBX:
+    the fbx queue converts solo alternatives), published at ``jobs/<job_id>/``; returns the file
+    names. ``rigs``: per partner the rig hook (``job_rig_output``; None: no rig), which writes
+    ``alternatives/<k>/<partner>.rig.bvh|glb``.
     Raises NotFoundError(``couple_graph_missing``) where the library has no couple graph."""
     if store.published(jobs.result_key(job_id)) is not None:
         return list_result_files(store, job_id)
@@ -300,7 +303,8 @@ def render_couple_result(
     tmp = store.temp_dir(f"job-{job_id}")
     try:
         extra = {"audio": audio} if audio else None
-        render_couple(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra)
+        on_rig = {k: hook for k, hook in (rigs or {}).items() if hook is not None}
+        render_couple(graph, analysis, found, bvh_spec, tmp, extra_provenance=extra, on_rig=on_rig)
         (tmp / SEARCH_FILE).write_text(json.dumps(found.to_dict()))
         store.publish(jobs.result_key(job_id), tmp)
     finally:
@@ -437,7 +441,14 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         state.progress(job_id, "search", STAGES["search"])
         if spec.couple:  # the couple's own graph, searched and rendered here
             source = {"file": job.audio_filename, "sha256": job.audio_sha256}
-            files = render_couple_result(store, job_id, spec, analysis, source)
+            rigs = {
+                partner: job_rig_output(store, settings.database_url, job.tenant_id, rig_id)
+                for partner, rig_id in (
+                    ("lead", spec.output.rig),
+                    ("follow", spec.output.follow_rig),
+                )
+            }
+            files = render_couple_result(store, job_id, spec, analysis, source, rigs)
             state.progress(job_id, "finalize", STAGES["finalize"])
             finalize(store, job_id)
             return RunOutcome("succeeded", files)

@@ -14,6 +14,7 @@ from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.dataset import import_dataset, load_dataset
 from services.worker import pipeline
 from tests.demo import demo_song
+from tests.motion.rigs import make_rigs
 
 MANIFEST = {
     "files": "6?_0[34]_scaled.bvh",
@@ -34,7 +35,18 @@ def test_a_couple_job_returns_both_dancers(sqlite_api, salsa_dir: Path, tmp_path
     build_graph(load_dataset(store, TEST_DATASET), store)
     build_couple_graph(store, TEST_DATASET)
     wav, song = demo_song(tmp_path)
-    spec = {"dataset": TEST_DATASET, "couple": True, "alternatives": 2}
+    rig_file = make_rigs(tmp_path / "rigs", blender=False) / "cmu_cm.bvh"
+    files = [("rig", (rig_file.name, rig_file.read_bytes(), "application/octet-stream"))]
+    rig = sqlite_api.post("/v1/rigs", files=files).json()["id"]
+    unknown = {"dataset": TEST_DATASET, "couple": True, "output": {"follow_rig": "nope"}}
+    refused = sqlite_api.submit(wav.read_bytes(), unknown)
+    assert refused.status_code == 422 and refused.json()["code"] == "unknown_rig"
+    spec = {
+        "dataset": TEST_DATASET,
+        "couple": True,
+        "alternatives": 2,
+        "output": {"formats": ["bvh"], "follow_rig": rig},
+    }
     resp = sqlite_api.submit(wav.read_bytes(), spec)
     assert resp.status_code == 202, resp.text
     job_id = resp.json()["id"]
@@ -52,6 +64,13 @@ def test_a_couple_job_returns_both_dancers(sqlite_api, salsa_dir: Path, tmp_path
         assert got["lead"].n_frames == got["follow"].n_frames == n_frames
         hips = np.linalg.norm(got["lead"].root_positions - got["follow"].root_positions, axis=1)
         assert 0.1 < np.median(hips) < 1.5
+        # the follow on its rig (output.follow_rig), both dancers in one GLB; no lead rig asked
+        on_rig = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/{k}/follow.rig.bvh")
+        assert on_rig.status_code == 200, on_rig.text
+        lead_rig = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/{k}/lead.rig.bvh")
+        assert lead_rig.status_code == 404
+        glb = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/{k}/couple.glb")
+        assert glb.status_code == 200 and glb.content[:4] == b"glTF"
     missing = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/5/lead.bvh")
     assert missing.status_code == 404 and missing.json()["code"] == "result_not_found"
     bad = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/0/partner.bvh")

@@ -330,16 +330,43 @@ def download_alternative(
 
 
 @router.get(
+    "/{job_id}/alternatives/{k}/{partner}.rig.{fmt}",
+    summary="Download one dancer of couple alternative k on its rig (output.rig for the lead, "
+    "output.follow_rig for the follow) as BVH or GLB",
+    response_class=FileResponse,
+    responses=_DOWNLOAD_RESPONSES,
+)
+def download_partner_on_rig(
+    job_id: str,
+    k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
+    partner: Literal["lead", "follow"] = Path(..., description="which dancer of the couple"),
+    fmt: Literal["bvh", "glb"] = Path(..., description="file format"),
+    tenant: Tenant = Depends(get_tenant),
+    db: Session = Depends(get_db),
+    store: ObjectStore = Depends(get_store),
+    settings: Settings = Depends(get_settings_dep),
+):
+    job = _finished_job(db, tenant, job_id)
+    what = f"couple alternative {k}'s {partner} on a rig as {fmt}"
+    key = _result_key(store, job, f"alternatives/{k}/{partner}.rig.{fmt}", what, "k")
+    name = f"{job.id}-{k}-{partner}.rig.{fmt}"
+    return result_response(store, settings, key, name, _MEDIA[fmt])
+
+
+@router.get(
     "/{job_id}/alternatives/{k}/{partner}.{fmt}",
-    summary="Download one dancer of couple alternative k (spec couple: true) as BVH",
+    summary="Download one dancer of couple alternative k (spec couple: true) as BVH, or both "
+    "dancers as couple.glb",
     response_class=FileResponse,
     responses=_DOWNLOAD_RESPONSES,
 )
 def download_partner(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
-    partner: Literal["lead", "follow"] = Path(..., description="which dancer of the couple"),
-    fmt: Literal["bvh"] = Path(..., description="file format"),
+    partner: Literal["lead", "follow", "couple"] = Path(
+        ..., description="lead or follow (BVH), or couple (GLB: both dancers)"
+    ),
+    fmt: Literal["bvh", "glb"] = Path(..., description="file format"),
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
