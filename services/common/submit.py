@@ -51,6 +51,8 @@ def check_rig(settings: Settings, tenant_id: str, spec: Spec) -> None:
     from services.common.rigs import find_rig
 
     named = {"rig": spec.output.rig, "follow_rig": spec.output.follow_rig}
+    if not any(named.values()):
+        return
     with session_scope(settings.database_url) as session:
         for field, rig_id in named.items():
             if rig_id is not None and find_rig(session, tenant_id, rig_id) is None:
