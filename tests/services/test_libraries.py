@@ -154,7 +154,7 @@ def test_a_new_upload_is_a_new_version_and_a_job_keeps_the_version_it_pinned(sql
         assert session.query(Dataset).filter_by(name="moves").count() == 0
 
 
-def test_no_tenant_reads_uses_or_deletes_another_tenants_library(api, demo_dir, song_wav):
+def test_no_tenant_reads_uses_or_deletes_another_tenants_library(api, demo_dir, song_wav, tmp_path):
     sent = enqueued(api)
     assert upload(api, demo_dir, "private-moves").status_code == 202
     build(api, sent)
@@ -178,6 +178,15 @@ def test_no_tenant_reads_uses_or_deletes_another_tenants_library(api, demo_dir, 
             ],
         )
         assert batch.status_code == 422 and batch.json()["code"] == "unknown_dataset"
+    # the batch pipelines' Celery entry (dancegraph.submit) refuses it the same way
+    from services.worker.submit import submit
+
+    wav = tmp_path / "song.wav"
+    wav.write_bytes(song_wav)
+    job_id = submit(
+        {"dataset": "private-moves"}, str(wav), other.tenant_name, settings=api.settings
+    )
+    assert other.get(f"/v1/jobs/{job_id}").json()["error"]["code"] == "unknown_dataset"
     # the same name is the other tenant's own library, apart from the first one's
     assert upload(other, demo_dir, "private-moves").status_code == 202
     build(other, sent)
