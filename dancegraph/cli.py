@@ -585,7 +585,7 @@ def _add_eval(sub) -> None:
             graph = open_graph(store, name, prov.get("graph", {}).get("version") or None)
             lib = load_library(graph, load_dataset(store, name))
             metrics = evaluate_result(args.result, lib, args.audio_file)
-            print_json({"out": args.result, "rows": metrics["rows"]})
+            print_json({"out": args.result, "rows": metrics["rows"], "library": metrics["library"]})
             return 0
         if not args.audio or not args.dataset or not args.out:
             raise SpecError(
@@ -606,7 +606,14 @@ def _add_eval(sub) -> None:
             args.rows,
             progress=lambda song, row: print(f"{song}: {row}", file=sys.stderr),
         )
-        print_json({"out": args.out, "seconds": metrics["seconds"], "rows": metrics["rows"]})
+        print_json(
+            {
+                "out": args.out,
+                "seconds": metrics["seconds"],
+                "rows": metrics["rows"],
+                "library": metrics["library"],
+            }
+        )
         return 0
 
     p.set_defaults(func=run)

@@ -105,6 +105,15 @@ def test_eval_result_scores_a_synthesize_folder(setup, capsys):
     # the song recorded in the timeline lies beside the result folder: its own beats are used
     assert metrics["music_beats"] == "librosa_percussive"
     assert len(_images((out / "report.html").read_text())) == 5
+    # naturalness beside the sync: the library's own pulse and the recovered-grid check per dance
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["library"]["pulse"]["takes"] > 0 and "classifier_chance" in printed["library"]
+    for dance in metrics["songs"][0]["rows"]["result"]["dances"]:
+        assert 0.0 <= dance["pulse_depth"] <= 1.0
+        check = dance["recovered_grid"]
+        assert {"tempo_diff_pct", "median_offset_ms", "downbeat_agreement"} <= set(check)
+        assert dance["grid_passed"] == float(check["passed"])
+        assert 0.0 < dance["speed_factor_min"] <= dance["speed_factor_max"]
 
 
 def test_eval_bad_input_gives_coded_errors(setup, capsys, tmp_path):
