@@ -56,6 +56,9 @@ class MusicAnalysis:
     ``COMMON_SIGNATURES``; ``bar_onset_rms`` (B, 2, 200). ``grid_octave``: ``x1``, or ``x2`` /
     ``x1/2`` where a dance style's tempo range (``analyze(..., tempo_range=)``) made the beats,
     bars and tempo count twice or half the tracked tempo (warning ``grid_octave``).
+    ``music_meter``: the music's own meter beside the dance bar of 4 beats (2 for 2/4 music
+    whose measures the bars pair; ``to_dict`` and ``summary`` give ``meters: {music, dance}``);
+    ``meter`` stays the meter the beat positions count.
 
     Optional, per learned model (keyed by the model file's sha256, added where the audio is at
     hand by ``embed.learned.add_music_terms``, absent from ``to_dict`` when empty so the cached
@@ -80,12 +83,20 @@ class MusicAnalysis:
     method: str
     warnings: list[str] = field(default_factory=list)
     grid_octave: str = "x1"
+    music_meter: int = 0
     learned_style: dict[str, np.ndarray] = field(default_factory=dict)
     learned_topk: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.music_meter = int(self.music_meter or self.meter)
 
     @property
     def n_bars(self) -> int:
         return len(self.bars)
+
+    def meters(self) -> dict[str, int]:
+        """The meter pair: ``{"music": the music's own meter, "dance": 4}`` (the dance bar)."""
+        return {"music": int(self.music_meter), "dance": BEATS_PER_BAR}
 
     def phrase_starts_s(self) -> np.ndarray:
         """``(P,)`` start time in seconds of each phrase: where the style encoder's 8-s log-mel
@@ -116,6 +127,7 @@ class MusicAnalysis:
             "method": self.method,
             "warnings": list(self.warnings),
             "grid_octave": self.grid_octave,
+            "meters": self.meters(),
         }
         if self.learned_style:
             out["learned_style"] = {k: r(v) for k, v in self.learned_style.items()}
@@ -150,6 +162,7 @@ class MusicAnalysis:
             method=str(d.get("method", "")),
             warnings=list(d.get("warnings", [])),
             grid_octave=str(d.get("grid_octave", "x1")),
+            music_meter=int((d.get("meters") or {}).get("music", d["meter"])),
             learned_style={
                 str(k): np.asarray(v, dtype=np.float32).reshape(-1, 32)
                 for k, v in (d.get("learned_style") or {}).items()
@@ -168,6 +181,7 @@ class MusicAnalysis:
             "tempo_bpm": round(float(self.tempo_bpm), 1),
             "tempo_confidence": round(float(self.tempo_confidence), 3),
             "meter": int(self.meter),
+            "meters": self.meters(),
             "n_beats": len(self.beats),
             "n_bars": self.n_bars,
             "n_phrases": len(self.phrases),
@@ -355,6 +369,7 @@ def analyze(
     """
     from dancegraph import jit
     from dancegraph.music.beats import track_beats  # the tracker loads torch: only when used
+    from dancegraph.music.tempo import tempo_from_beats
 
     jit.ensure("music")  # librosa's kernels load under the cache lock, before the features use them
     y = _samples(path_or_array, sr)
@@ -367,10 +382,7 @@ def analyze(
             beats, positions, meter, tempo_range
         )
         if octave != "x1":
-            from dancegraph.music.tempo import tempo_from_beats
-
-            tempo_bpm = tempo_from_beats(beats)[0]
-            warnings += notes
+            tempo_bpm, warnings = tempo_from_beats(beats)[0], warnings + notes
     bars, bar_beats, bar_warnings = four_beat_bars(beats, positions, meter, duration)
     if len(bars) == 0:
         raise AudioError("too few beats to form a single 4-beat bar", code="no_beat", field="audio")
@@ -395,4 +407,5 @@ def analyze(
         method=str(bt.method),
         warnings=warnings + bar_warnings,
         grid_octave=octave,
+        music_meter=bt.music_meter,
     )

@@ -50,6 +50,8 @@ docs/music.md ("Measurements behind the steps").
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from dancegraph.music.params import GroupParams
@@ -61,6 +63,7 @@ __all__ = [
     "downbeat_contrast",
     "downbeat_evidence",
     "fold_contrast",
+    "Grouping",
     "grid_glitches",
     "group_beats",
     "half_bar_contrast",
@@ -223,10 +226,10 @@ def bar_clarity(
     k = len(frames)
     if k < 16:
         return 0.0
-    positions, _, _ = group_beats(
+    positions = group_beats(
         np.ones(k, dtype=np.int64), np.full(k, 4), act, frames, onset_env, bass_onset, chroma,
         meter_prior=False, snare_onset=snare_onset, p=p,
-    )  # fmt: skip
+    ).positions  # fmt: skip
     return downbeat_contrast(
         downbeat_evidence(act, frames, chroma, snare_onset=snare_onset, p=p), positions
     )
@@ -293,6 +296,18 @@ def restart_costs(frames: np.ndarray, p: GroupParams = GroupParams()) -> np.ndar
     return np.where(grid_glitches(frames, p), p.log_restart_glitch, p.log_restart)
 
 
+class Grouping(NamedTuple):
+    """The bar grouping of a beat grid: ``positions`` (K,) in the bar (1 = downbeat),
+    ``meters`` (K,) beats per bar as reported, ``notes`` its warnings, and ``music_meter`` the
+    music's own meter: 2 where 2/4 measures were paired into bars of 4 (the dance bar), else
+    the reported one."""
+
+    positions: np.ndarray
+    meters: np.ndarray
+    notes: list[str]
+    music_meter: int
+
+
 def _decide_meter(
     decoded: int,
     dist: dict[int, float],
@@ -319,6 +334,25 @@ def _decide_meter(
     return meter, clearer_in_4
 
 
+def _grouping_notes(
+    decoded: int, meter: int, dist: dict[int, float], clearer_in_4: float, changed: np.ndarray
+) -> list[str]:
+    """The warnings of a grouping: ``meter_regrouped`` when ``meter`` is not the ``decoded``
+    one, ``downbeat_rephased`` when the downbeat ``changed`` (K,) bool on more than a tenth of
+    the beats."""
+    notes = []
+    if meter != decoded:
+        notes.append(
+            f"meter_regrouped: {decoded} -> {meter} beats per bar "
+            f"(bar-length self-similarity: 3 beats {dist[3]:.2f}, 4 beats {dist[4]:.2f}; "
+            f"downbeats clearer in bars of 4 by {clearer_in_4:.2f})"
+        )
+    n, moved = len(changed), int(changed.sum())
+    if meter == decoded and moved > 0.1 * n:
+        notes.append(f"downbeat_rephased: the downbeat moved on {moved} of {n} beats")
+    return notes
+
+
 def group_beats(
     positions: np.ndarray,
     meters: np.ndarray,
@@ -331,7 +365,7 @@ def group_beats(
     meter_prior: bool = True,
     snare_onset: np.ndarray | None = None,
     p: GroupParams = GroupParams(),
-) -> tuple[np.ndarray, np.ndarray, list[str]]:
+) -> Grouping:
     """Re-decide the meter and bar phase of a decoded beat grid (see the module docstring).
 
     ``positions``/``meters`` (K,): the decoder's; ``act`` (T, 2) BeatNet's beat/downbeat
@@ -339,17 +373,16 @@ def group_beats(
     and ``chroma`` (12, T) at the same 50 fps; ``tracked`` (K,) bool: the beats the network
     tracked itself (not moved by a mend; default all); ``meter_prior=False`` when the decoder
     counted other beats (a grid at twice the tactus, every other beat kept): its meter is then
-    no prior; 4 unless 3-beat bars repeat better by ``p.halved_meter_margin``. Returns
-    (positions, meters, warnings): warnings ``meter_regrouped`` when the meter differs from the
-    decoder's, ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats
-    (not with ``meter_prior=False``: the decoder's downbeats were eighths, not these beats).
-    """
+    no prior; 4 unless 3-beat bars repeat better by ``p.halved_meter_margin``. Returns the
+    :class:`Grouping`; warnings ``meter_regrouped`` when the meter differs from the decoder's,
+    ``downbeat_rephased`` when the downbeats differ on more than a tenth of the beats (not with
+    ``meter_prior=False``: the decoder's downbeats were eighths, not these beats)."""
     positions = np.asarray(positions, dtype=np.int64)
     meters = np.asarray(meters, dtype=np.int64)
     n = len(positions)
-    if n < 16:
-        return positions, meters, []
     values, counts = np.unique(meters, return_counts=True)
+    if n < 16:
+        return Grouping(positions, meters, [], int(values[np.argmax(counts)]) if n else 4)
     # without a prior the decoder counted eighths: 4, the commoner meter, is the prior
     decoded = int(values[np.argmax(counts)]) if meter_prior else 4
     dist = meter_distances(beat_features(onset_env, bass_onset, chroma, frames))
@@ -360,6 +393,7 @@ def group_beats(
     meter, clearer_in_4 = _decide_meter(decoded, dist, e, paths, margin, p)
     grouping = 4 if meter == 2 else meter
     new = paths[grouping] if grouping in paths else phase_viterbi(e, grouping, restarts)
+    music_meter = meter
     # 4/4 with a strong backbeat, or 2/4: do the bar's two halves differ?
     if meter == 2 and half_bar_contrast(e, new) > p.duple_margin:
         meter = 4
@@ -369,14 +403,9 @@ def group_beats(
         new = phase_viterbi(own, grouping, restarts)
     if meter == 2:
         new = (new - 1) % 2 + 1
-    notes = []
-    if meter != decoded:
-        notes.append(
-            f"meter_regrouped: {decoded} -> {meter} beats per bar "
-            f"(bar-length self-similarity: 3 beats {dist[3]:.2f}, 4 beats {dist[4]:.2f}; "
-            f"downbeats clearer in bars of 4 by {clearer_in_4:.2f})"
-        )
-    changed = int(np.sum((new == 1) != (positions == 1)))
-    if meter_prior and meter == decoded and changed > 0.1 * n:
-        notes.append(f"downbeat_rephased: the downbeat moved on {changed} of {n} beats")
-    return new, np.full(n, meter, dtype=np.int64), notes
+    notes = _grouping_notes(
+        decoded, meter, dist, clearer_in_4, changed=(new == 1) != (positions == 1)
+    )
+    if not meter_prior:
+        notes = [x for x in notes if not x.startswith("downbeat_rephased")]
+    return Grouping(new, np.full(n, meter, dtype=np.int64), notes, music_meter)

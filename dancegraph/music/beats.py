@@ -53,8 +53,9 @@ class BeatTracking:
 
     beats (K,), beat_positions (K,) int (1 = downbeat), downbeats (M,), meter (2|3|4, the meter
     in force for most beats), tempo_bpm, tempo_confidence (0..1), method ('beatnet'|'librosa'),
-    warnings (codes with a short text), and ``evidence`` (the numbers behind the no-beat test
-    and the confidence).
+    warnings (codes with a short text), ``evidence`` (the numbers behind the no-beat test and
+    the confidence) and ``music_meter``: the music's own meter, 2 where 2/4 measures were paired
+    into the 4-beat bars ``meter`` reports (else ``meter``).
     """
 
     beats: np.ndarray
@@ -66,6 +67,10 @@ class BeatTracking:
     method: str
     warnings: list[str] = field(default_factory=list)
     evidence: dict = field(default_factory=dict)
+    music_meter: int = 0
+
+    def __post_init__(self) -> None:
+        self.music_meter = int(self.music_meter or self.meter)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -176,6 +181,7 @@ def track_evidence(ev: Evidence, params: AnalysisParams | None = None) -> BeatTr
     grid, weak = build(ev, params, values, warnings)
     times, positions = grid.times, grid.positions
     meters, counts = np.unique(grid.meters, return_counts=True)
+    meter = int(meters[np.argmax(counts)])
     if len(meters) > 1:
         warnings.append(f"meter_change: beats in meters {', '.join(map(str, meters.tolist()))}")
     tempo = estimate_tempo(times, ev.spec.onset_env, FPS, params.tempo)
@@ -193,12 +199,13 @@ def track_evidence(ev: Evidence, params: AnalysisParams | None = None) -> BeatTr
         beats=np.asarray(times, dtype=np.float64),
         beat_positions=np.asarray(positions, dtype=np.int64),
         downbeats=np.asarray(times[positions == 1], dtype=np.float64),
-        meter=int(meters[np.argmax(counts)]),
+        meter=meter,
         tempo_bpm=float(tempo.bpm),
         tempo_confidence=float(confidence),
         method="beatnet" if ev.act is not None else "librosa",
         warnings=warnings,
         evidence=values,
+        music_meter=grid.music_meter or meter,
     )
 
 

@@ -82,7 +82,8 @@ class Grid:
     ``meters`` (K,) beats per bar; ``decoded`` (M,) s the decoder's own beats (where the
     network's downbeat activation is about the beat); ``halved``: a step kept every other beat
     of the decoder's (its meter is no prior); ``subdivision``: what sounds between the decoder's
-    beats (:func:`subdivision_strength`), once measured."""
+    beats (:func:`subdivision_strength`), once measured; ``music_meter``: the music's own meter
+    where the bar grouping paired 2/4 measures into bars of 4 (None: the reported meter)."""
 
     times: np.ndarray
     positions: np.ndarray
@@ -90,6 +91,7 @@ class Grid:
     decoded: np.ndarray
     halved: bool = False
     subdivision: float | None = None
+    music_meter: int | None = None
 
     @classmethod
     def from_decoded(cls, dec: barpointer.DecodedBeats) -> Grid:
@@ -229,11 +231,11 @@ def _group_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid,
         return grid, []
     spec = ev.spec
     frames, tracked = grid.frames()
-    positions, meters, notes = group_beats(
+    g = group_beats(
         grid.positions, grid.meters, ev.act, frames, spec.onset_env, spec.bass_onset, spec.chroma,
         tracked, meter_prior=not grid.halved, snare_onset=spec.snare_onset, p=params.group,
     )  # fmt: skip
-    return replace(grid, positions=positions, meters=meters), notes
+    return replace(grid, positions=g.positions, meters=g.meters, music_meter=g.music_meter), g.notes
 
 
 def _split_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid, list[str]]:
@@ -257,7 +259,7 @@ def _split_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid,
         return grid, []
     times, positions = split_beats(grid.times, grid.positions, per_bar)
     frames, tracked = frames_tracked(times, grid.decoded)
-    positions, meters, notes = group_beats(
+    g = group_beats(
         positions, np.full(len(times), 3 if per_bar == 3 else 4), ev.act, frames, spec.onset_env,
         spec.bass_onset, spec.chroma, tracked, meter_prior=False, snare_onset=spec.snare_onset,
         p=params.group,
@@ -266,7 +268,10 @@ def _split_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid,
         f"beats_split: {why} at {bpm:.1f} BPM: the beats were half notes; each split in two, "
         f"{2 * bpm:.1f} BPM, bars regrouped"
     )
-    return replace(grid, times=times, positions=positions, meters=meters), [note, *notes]
+    new = replace(
+        grid, times=times, positions=g.positions, meters=g.meters, music_meter=g.music_meter
+    )
+    return new, [note, *g.notes]
 
 
 def _within_sound_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid, list[str]]:

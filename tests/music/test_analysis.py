@@ -130,8 +130,10 @@ def test_to_dict_from_dict_and_summary(analysed):
         b.bar_onset_rms, a.bar_onset_rms, atol=1e-4
     )
     assert b.phrases == a.phrases and b.tags == a.tags and b.meter == a.meter
+    assert d["meters"] == {"music": 4, "dance": 4} and b.meters() == a.meters()
     assert np.array_equal(b.signature_topk, a.signature_topk)
     s = a.summary()
+    assert s["meters"] == {"music": 4, "dance": 4}
     assert s["n_bars"] == a.n_bars and s["form"] == "".join(p["label"] for p in a.phrases)
     empty = MusicAnalysis.from_dict(
         {"duration_s": 1, "tempo_bpm": 0, "tempo_confidence": 0, "meter": 4}
@@ -230,3 +232,15 @@ def test_analysis_version_names_the_models_in_use(tmp_path, monkeypatch):
     analysis_version.cache_clear()
     assert len(versions["with"]) == 12 and int(versions["with"], 16) >= 0
     assert versions["again"] == versions["with"] != versions["without"]
+
+
+def test_two_four_music_is_danced_in_bars_of_four_with_its_own_meter_beside(cc_music_dir):
+    """The Sugar Plum Fairy (2/4; CC BY 3.0, Kevin MacLeod): its measures paired into 4-beat
+    dance bars (``meter`` 4), the music's own meter 2 said beside them, in the JSON too."""
+    path = cc_music_dir / "Kevin_MacLeod_-_P_I_Tchaikovsky_Dance_of_the_Sugar_Plum_Fairy.hq.ogg"
+    if not path.exists():
+        pytest.skip(f"{path} not found (set DANCEGRAPH_SHARED)")
+    a = analyze(path)
+    assert a.meter == 4 and a.meters() == {"music": 2, "dance": 4}
+    assert MusicAnalysis.from_dict(json.loads(json.dumps(a.to_dict()))).music_meter == 2
+    assert a.summary()["meters"] == {"music": 2, "dance": 4}

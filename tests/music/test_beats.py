@@ -145,8 +145,8 @@ def _network_against_harmony(network_peak: float) -> tuple[np.ndarray, np.ndarra
         chroma[:, f : f + 25] = chords[((i + 2) // 4) % 2][:, None]
     flat = np.ones(n)
     positions = np.tile([1, 2, 3, 4], beats // 4)
-    new, _, _ = bargroup.group_beats(positions, np.full(beats, 4), act, frames, flat, flat, chroma)
-    return new[::4], new[2::4]
+    new = bargroup.group_beats(positions, np.full(beats, 4), act, frames, flat, flat, chroma)
+    return new.positions[::4], new.positions[2::4]
 
 
 def test_a_network_fairly_sure_of_its_downbeats_keeps_them_against_the_harmony() -> None:
@@ -1317,9 +1317,10 @@ def test_a_network_sure_of_its_downbeats_keeps_them_against_the_harmony() -> Non
         act = np.full((t, 2), 0.02)
         act[frames, 1] = np.where(true_down, down, other)
         act[frames, 0] = 0.5
-        new, meters, _ = bargroup.group_beats(
+        new, meters, _, music_meter = bargroup.group_beats(
             positions, np.full(n, 4), act, frames, flat, flat, chord
         )
+        assert music_meter == 4
         assert meters[0] == 4
         assert np.array_equal(new == 1, true_down) is kept
 
