@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from dancegraph.motion import quat
-from dancegraph.motion.fk import fk_arrays
 
 _GLB_MAGIC = 0x46546C67
 _CHUNK_JSON = 0x4E4F534A
@@ -486,14 +485,13 @@ def joint_locals(motion, rig) -> tuple[np.ndarray, np.ndarray, float]:
     """
     sk = rig.skeleton
     rest = quat.normalize(np.asarray(rig.rest_rotations, dtype=float))
-    _, g = fk_arrays(sk, motion.root_positions, motion.rotations)  # world deltas from bind
-    world = quat.multiply(g, rest[None])  # each joint's own frame, per frame
     top, top_q, sigma = _placement(rig)
-    local = world.copy()
     parents = sk.parents
     nonroot = parents >= 0
-    local[:, nonroot] = quat.multiply(quat.conjugate(world[:, parents[nonroot]]), world[:, nonroot])
-    local[:, 0] = quat.multiply(quat.conjugate(top_q)[None], world[:, 0])
+    # world frame G_j · R_j with G_j = G_parent · q_j, so the local one is R_parent⁻¹ · q_j · R_j
+    # (the root's parent: the ancestors' turn): no forward kinematics needed
+    above = np.where(nonroot[:, None], rest[np.maximum(parents, 0)], top_q[None])
+    local = quat.multiply(quat.multiply(quat.conjugate(above)[None], motion.rotations), rest[None])
     local = _continuous(quat.normalize(local))
     moves = np.zeros((motion.n_frames, sk.n_joints, 3))
     moves[:, nonroot] = quat.rotate(quat.conjugate(rest[parents[nonroot]]), sk.offsets[nonroot])
