@@ -422,16 +422,19 @@ def follow_take(graph: MotionGraph, i: int) -> str:
     return str(graph.manifest["couple"]["partners"][int(graph.node_clip[i])][1])
 
 
-def follow_frames(graph: MotionGraph, i: int) -> tuple[Motion, np.ndarray]:
+def follow_frames(
+    graph: MotionGraph, i: int, skeleton: Skeleton | None = None
+) -> tuple[Motion, np.ndarray]:
     """The follow's stored motion of couple node ``i`` and the frames ``(9,)`` of its beats
-    -2 .. 6 (the lead's: one grid), as ``MotionGraph.node_frames`` gives the lead's."""
-    lead, beats = graph.node_frames(i)
+    -2 .. 6 (the lead's: one grid), as ``MotionGraph.node_frames`` gives the lead's.
+    ``skeleton``: the graph's, where the caller has it (``graph.skeleton`` builds it anew)."""
     row = int(graph.motion_row[i])
     a, b = int(graph.motion_ptr[row]), int(graph.motion_ptr[row + 1])
     rot = np.asarray(graph.follow_rotations[a:b], dtype=np.float64)
     rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
     root = np.asarray(graph.follow_root[a:b], dtype=np.float64)
-    return Motion(lead.skeleton, lead.fps, root, rot), beats
+    motion = Motion(skeleton or graph.skeleton, float(graph.motion_fps[row]), root, rot)
+    return motion, np.asarray(graph.motion_beats[row], dtype=np.float64)
 
 
 def open_couple_graph(store: ObjectStore, name: str, version: str | None = None) -> MotionGraph:

@@ -79,7 +79,7 @@ def _pieces(graph: MotionGraph, nodes: list[str]) -> tuple[list, list]:
             )
         i = graph.node_index(node_id)
         lead.append(graph.node_frames(i))
-        follow.append(follow_frames(graph, i))
+        follow.append(follow_frames(graph, i, lead[-1][0].skeleton))
     return lead, follow
 
 
