@@ -98,9 +98,9 @@ def _fail(
 
 def run_import(row_id: int, settings: Settings | None = None) -> str:
     """Import and build one library version; returns 'succeeded', 'failed' (the upload's
-    fault: a DanceGraphError, recorded on the row with its code and each failed take's) or
-    'skipped' (not ours: final, deleted, or held by a live worker). Other errors are raised
-    (the task retries transient ones)."""
+    fault: a DanceGraphError, recorded on the row with its code and each failed take's, and
+    what the version had stored removed) or 'skipped' (not ours: final, deleted, or held by a
+    live worker). Other errors are raised (the task retries transient ones)."""
     settings = settings or get_settings()
     store = settings_store(settings)
     worker = state.worker_name()
@@ -108,9 +108,52 @@ def run_import(row_id: int, settings: Settings | None = None) -> str:
         row = libraries.claim(session, row_id, worker, stale_after_s=settings.job_timeout_s)
         if row is None:
             return "skipped"
-        graph_name, upload = row.graph_name, dict(row.upload or {})
+        graph_name, upload, version = row.graph_name, dict(row.upload or {}), row.version
     assert graph_name is not None
     scratch = store.temp_dir(f"library-{row_id}")
+    try:
+        report, built = _work(settings, store, row_id, worker, graph_name, upload, scratch)
+    except DanceGraphError as exc:
+        if getattr(exc, "status", 400) == 503:
+            raise  # a service is down, not the upload at fault: the task retries
+        log.info("library import failed", extra={"dataset_row": row_id, "error_code": exc.code})
+        _fail(row_id, exc.code, exc.message, exc.field, _failed_takes(exc))
+        for prefix in (f"datasets/{graph_name}", f"graphs/{graph_name}"):
+            store.delete_prefix(prefix)
+        store.delete_prefix(libraries.upload_prefix(version))
+        return "failed"
+    except state.JobCancelled:
+        log.info(
+            "library import no longer ours (deleted, taken over)", extra={"dataset_row": row_id}
+        )
+        return "skipped"
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    with session_scope() as session:
+        ok = libraries.succeed(
+            session,
+            row_id,
+            graph_key=built["key"],
+            report={**report, "graph": _graph_summary(built)},
+            stats={"nodes": built["nodes"], "edges": built["edges"], "takes": len(report["clips"])},
+            licence=str(report.get("licence") or ""),
+        )
+    log.info("library built", extra={"dataset_row": row_id, "graph": graph_name, "published": ok})
+    return "succeeded"
+
+
+def _work(
+    settings: Settings,
+    store: ObjectStore,
+    row_id: int,
+    worker: str,
+    graph_name: str,
+    upload: dict,
+    scratch: Path,
+) -> tuple[dict, dict]:
+    """Fetch, import (sandboxed) and build under a heartbeat that also carries the stage and
+    percent the sandboxed child writes; ``(import report with seconds per phase, build)``.
+    Raises ``state.JobCancelled`` once the version is no longer ours."""
     progress = scratch / PROGRESS_FILE
 
     def beat() -> bool:
@@ -119,56 +162,27 @@ def run_import(row_id: int, settings: Settings | None = None) -> str:
         with session_scope() as session:
             return libraries.beat(session, row_id, worker, stage, percent)
 
-    try:
-        with state.Heartbeat(
-            str(row_id), state.heartbeat_interval(settings.job_timeout_s), beat
-        ) as hb:
-            _stage(progress, "fetch", libraries.STAGES["fetch"])
-            t0 = time.perf_counter()
-            src, archive = _fetch(store, upload, scratch)
-            t1 = time.perf_counter()
-            report = _import(settings, store, graph_name, src, archive, upload, progress)
-            hb.check()
-            _stage(progress, "build", libraries.STAGES["build"])
-            t2 = time.perf_counter()
-            built = _build(store, graph_name)
-            hb.check()
-            report["seconds"] = {
-                "fetch": round(t1 - t0, 2),
-                "import": round(t2 - t1, 2),
-                "build": round(time.perf_counter() - t2, 2),
-            }
-            _stage(progress, "publish", libraries.STAGES["publish"])
-            beat()
-        with session_scope() as session:
-            ok = libraries.succeed(
-                session,
-                row_id,
-                graph_key=built["key"],
-                report={**report, "graph": _graph_summary(built)},
-                stats={
-                    "nodes": built["nodes"],
-                    "edges": built["edges"],
-                    "takes": len(report.get("clips", [])),
-                },
-                licence=str(report.get("licence") or ""),
-            )
-    except DanceGraphError as exc:
-        if getattr(exc, "status", 400) == 503:
-            raise  # a service is down, not the upload at fault: the task retries
-        log.info("library import failed", extra={"dataset_row": row_id, "error_code": exc.code})
-        _fail(row_id, exc.code, exc.message, exc.field, _failed_takes(exc))
-        return "failed"
-    except state.JobCancelled:
-        log.info(
-            "library import is no longer ours (deleted or taken over)",
-            extra={"dataset_row": row_id},
-        )
-        return "skipped"
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-    log.info("library built", extra={"dataset_row": row_id, "graph": graph_name, "published": ok})
-    return "succeeded"
+    interval = state.heartbeat_interval(settings.job_timeout_s)
+    with state.Heartbeat(str(row_id), interval, beat) as hb:
+        _stage(progress, "fetch", libraries.STAGES["fetch"])
+        t0 = time.perf_counter()
+        src, archive = _fetch(store, upload, scratch)
+        t1 = time.perf_counter()
+        report = _import(settings, store, graph_name, src, archive, upload, progress)
+        hb.check()
+        _stage(progress, "build", libraries.STAGES["build"])
+        t2 = time.perf_counter()
+        built = _build(store, graph_name)
+        hb.check()
+        report["seconds"] = {
+            "fetch": round(t1 - t0, 2),
+            "import": round(t2 - t1, 2),
+            "build": round(time.perf_counter() - t2, 2),
+        }
+        _stage(progress, "publish", libraries.STAGES["publish"])
+        if not beat():
+            raise state.JobCancelled(str(row_id))
+    return report, built
 
 
 def _stage(progress: Path, stage: str, percent: float) -> None:

@@ -54,6 +54,7 @@ def _import(client, files: list, manifest: dict | None) -> dict:
         store = client.app.state.ctx.store
         assert not list(store.list(f"graphs/{row.graph_name}"))
         assert not list(store.list(f"datasets/{row.graph_name}"))
+        assert not list(store.list(f"uploads/libraries/{row.version}"))  # nothing kept
         assert (
             client.submit(wav_bytes(12.0), {"dataset": "untrusted"}).json()["code"]
             == "unknown_dataset"
