@@ -295,7 +295,7 @@ def render_couple_result(
     from dancegraph.couple.render import render_couple
     from dancegraph.graph.search import search as search_graph
 
-    graph = open_couple_graph(store, spec.dataset)
+    graph = open_couple_graph(store, spec.libraries()[0])  # the pinned graph, once chosen
     found = search_graph(graph, analysis, spec)
     bvh_spec = spec.model_copy(
         update={"output": spec.output.model_copy(update={"formats": ["bvh"]})}
