@@ -6,9 +6,10 @@ floor, foot sliding at contacts (target and source), the median and p95 world-di
 the mapped limb bones, and the largest frame-to-frame joint rotation (target and source). Then
 the file writing: BVH, GLB (and FBX through Blender where it is installed).
 
-The dance is real salsa: the 60_NN takes read at their true 60 fps, resampled to 30 fps, stitched
-as the renderer stitches bars (root alignment and seam blending), feet cleaned as the renderer
-cleans them, cut at 3 minutes. The rigs are the project's test rigs (tests/motion/rigs.py),
+The dance is real salsa: the 60_NN takes read at their true 60 fps, cut into bars of a nominal
+168 BPM beat and stitched onto an even 168 BPM song at 30 fps as the renderer stitches bars
+(cuts near the bar lines, root alignment and seam blending), feet cleaned as the renderer cleans
+them, cut at 3 minutes. The rigs are the project's test rigs (tests/motion/rigs.py),
 Blender-made where Blender is installed. CPU seconds: median of 3 runs (``time.process_time``).
 A second table is the baseline row: the same transfer without the foot step.
 """
@@ -21,15 +22,18 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.contacts import clean_foot_skate
 from dancegraph.motion.fbx import fbx_available
 from dancegraph.motion.retarget import RetargetParams, plan_retarget, retarget, write_on_rig
-from dancegraph.motion.retime import resample
+from dancegraph.motion.retime import NODE_BEATS
 from dancegraph.motion.rig import load_rig
 from dancegraph.motion.skeleton import Motion
 from dancegraph.motion.stitch import stitch
 from dancegraph.paths import shared_dir
+from dancegraph.render import bar_frames
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from tests.motion.rigs import GOOD_BVH_RIGS, GOOD_RIGS, GOOD_RIGS_MESH, make_rigs  # noqa: E402
@@ -37,21 +41,36 @@ from tests.motion.rigs import GOOD_BVH_RIGS, GOOD_RIGS, GOOD_RIGS_MESH, make_rig
 FPS = 30.0
 SECONDS = 180
 TARGET_CPU_S = 1.5
+BEAT_S = 60.0 / 168.0  # a salsa beat (s) at the takes' ~168 BPM
+
+
+def take_bars(take: Motion) -> list[tuple[Motion, np.ndarray]]:
+    """Consecutive bars of ``take`` on a nominal ``BEAT_S`` beat: per bar the frames around it and
+    where its beats -2 .. 6 fall in them (``stitch``'s pieces)."""
+    beat = BEAT_S * take.fps
+    pieces = []
+    for start in np.arange(2 * beat + 3, take.n_frames - 6 * beat - 3, 4 * beat):
+        lo, hi = int(np.floor(start - 2 * beat)) - 2, int(np.ceil(start + 6 * beat)) + 2
+        pieces.append((take.slice(lo, hi), start + NODE_BEATS * beat - lo))
+    return pieces
 
 
 def three_minute_salsa() -> Motion:
-    """Real salsa takes at 30 fps stitched into 3 minutes, feet cleaned (as a rendered dance)."""
+    """Real salsa bars stitched onto an even 168 BPM song of 3 minutes at 30 fps, feet cleaned
+    (as a rendered dance); a take's bars follow each other, the takes follow in turn."""
     takes = sorted((shared_dir() / "datasets/mocap/cmu-salsa").glob("60_*_scaled.bvh"))
-    clips, total, need = [], 0, int(SECONDS * FPS)
-    while total < need:
+    n_bars = int(np.ceil(SECONDS / (4 * BEAT_S)))
+    pieces: list[tuple[Motion, np.ndarray]] = []
+    while len(pieces) < n_bars:
         for path in takes:
-            clip = resample(read_bvh(path, fps=60.0), FPS)
-            clips.append(clip)
-            total += clip.n_frames
-            if total >= need:
+            pieces.extend(take_bars(read_bvh(path, fps=60.0)))
+            if len(pieces) >= n_bars:
                 break
-    dance, _ = stitch(clips)
-    dance, _ = clean_foot_skate(dance.slice(0, need))
+    beats = np.arange(4 * n_bars + 1) * BEAT_S
+    bar_beats = np.stack([beats[4 * b : 4 * b + 5] for b in range(n_bars)])
+    frames = bar_frames(bar_beats[:, [0, 4]], FPS)
+    dance, _ = stitch(pieces[:n_bars], bar_beats, frames, FPS)
+    dance, _ = clean_foot_skate(dance.slice(0, int(SECONDS * FPS)))
     return dance
 
 
