@@ -13,15 +13,17 @@ whose accents sit exactly on its bars' signatures (the exact-truth reference); w
 files of ``DIR/audio`` (or ``DIR``), the first K of each genre (the name up to its first ``.``
 or ``_``; GTZAN's 15-20 s clips in ``bench_real_music``'s layout: many short dances, so the
 mean over songs is steadier than the four CC songs alone). Per set it prints
-the sync table (value, half-beat and other-song chance rows) and, per song, ``ours`` against
-issue 24's targets: phase concentration R >= 0.5, BAS (Bailando) >= half-beat chance + 0.15
-(beside the song's ceiling, ``bas_ceiling``, and the gain of BAS on the tracker's beats), CM beat
-accuracy >= 0.85 and >= 1.5 x its half-beat chance (beside its ceiling, ``cm_ceiling``).
-Beside the sync rows, naturalness (issue 37; ``metrics.naturalness``): per row the pulse depth
-(mean joint speed folded on the song's beats, 8 bins, 1 - min/max) beside the library's on its
-own grids, the re-timing's speed factor outside the seams, the recovered-grid check (the
+the sync table (value, half-beat and other-song chance rows) and, per song, ``ours``'s phase
+concentration R, BAS (Bailando) gain over its half-beat chance (beside the song's ceiling,
+``bas_ceiling``, and the gain of BAS on the tracker's beats) and CM beat accuracy (beside its
+ceiling, ``cm_ceiling``): reported rows, no longer targets (issue 37). Beside the sync rows,
+naturalness (issue 37; ``metrics.naturalness``), with its targets checked on the cmu-salsa sets:
+per row the pulse depth (mean joint speed folded on the song's beats, 8 bins, 1 - min/max)
+beside the library's on its own grids, the speed factor of the whole map from song time to the
+takes' time outside the seams (within [0.8, 1.25]), the recovered-grid check (the
 importer's estimator on the dance: tempo within 1 %, median offset <= 40 ms, downbeats >= 80 %)
-and its other-song chance row, FID_k, and the two-sample classifier's balanced accuracy per song
+(passed on >= 90 % of the dances) and its other-song chance row (<= 20 %), FID_k, and the
+two-sample classifier's balanced accuracy per song (<= 0.65 on songs in salsa's tempo range)
 against the library's takes and against the same takes with the renderer's foot cleanup, beside
 its library-against-library chance rows; the ``ours`` row is danced again with the beat
 accent ``--accent-row`` (default 0.4; 0: not run) for the stylization's cost.
@@ -68,10 +70,13 @@ NATURAL = (
     ("classifier_cleaned", "vs cleaned"),
 )
 METRICS = ("cm_accuracy", "beat_accuracy", "bas_bailando", "bas_fact", "bas_beats", "phase_r")
-TARGET_R = 0.5
-TARGET_BAS_GAIN = 0.15
-TARGET_CM = 0.85
-TARGET_CM_RATIO = 1.5
+TARGET_GRID = 0.9
+TARGET_GRID_CHANCE = 0.2
+TARGET_SPEED = (0.8, 1.25)
+TARGET_CLASSIFIER = 0.65
+#: salsa's tempo range (the cmu-salsa manifest's prior): songs inside it are danced near the
+#: takes' own tempo, where the two-sample test's target applies
+STYLE_RANGE_BPM = (150.0, 220.0)
 
 
 def _library(store: ObjectStore, name: str, folder: Path, manifest: dict) -> harness.Library:
@@ -153,18 +158,14 @@ def cm_ceiling(grid: mbeats.SyncGrid) -> float:
     return mbeats.beat_accuracy(points, mbeats.within(grid.beats, a, b))
 
 
-def _targets(metrics: dict, songs: list[harness.Song]) -> int:
-    """Print ours' numbers per song against the targets, with the song's BAS ceiling
-    (``bas_ceiling``) and CM ceiling (``cm_ceiling``); the number of songs that miss one."""
+def _sync_per_song(metrics: dict, songs: list[harness.Song]) -> None:
+    """Print ours' sync numbers per song, reported rows beside their ceilings (issue 37 retired
+    them as targets): R, the BAS (Bailando) gain over its half-beat chance with the song's
+    ceiling (``bas_ceiling``) and the gain of BAS on the tracker's beats, CM beat accuracy with
+    its ceiling (``cm_ceiling``) and its ratio to the half-beat chance."""
     ceilings = {song.name: bas_ceiling(song.grid) for song in songs}
     cm_ceilings = {song.name: cm_ceiling(song.grid) for song in songs}
-    print(
-        f"per song, ours (mean of alternatives): R >= {TARGET_R}, BAS gain >= {TARGET_BAS_GAIN} "
-        f"(ceiling: a dance on the tracker's beats; beside it the gain of BAS on the tracker's "
-        f"beats), CM acc >= {TARGET_CM} and >= {TARGET_CM_RATIO} x half-beat chance (ceiling: "
-        f"the share of the rhythm points on a beat)"
-    )
-    missed = 0
+    print("per song, ours (mean of alternatives; reported, not targets):")
     for song in metrics["songs"]:
         dances = song["rows"]["ours"]["dances"]
 
@@ -176,16 +177,46 @@ def _targets(metrics: dict, songs: list[harness.Song]) -> int:
         gain = mean("bas_bailando") - mean("bas_bailando_half")
         on_beats = mean("bas_beats") - mean("bas_beats_half")
         ratio = cm / cm_half if cm_half > 0 else float("inf")
-        ok = [r >= TARGET_R, gain >= TARGET_BAS_GAIN, cm >= TARGET_CM, ratio >= TARGET_CM_RATIO]
-        missed += not all(ok)
-        marks = " ".join("ok" if o else "MISS" for o in ok)
         print(
             f"  {song['song'][:44]:<44} R {r:.3f}  BAS gain {gain:+.3f} "
             f"(ceiling {ceilings.get(song['song'], float('nan')):+.3f}; beats {on_beats:+.3f})  "
             f"CM acc {cm:.3f} (ceiling {cm_ceilings.get(song['song'], float('nan')):.3f}; "
-            f"{ratio:.2f} x chance)  [{marks}]"
+            f"{ratio:.2f} x chance)"
         )
-    return missed
+
+
+def _natural_targets(metrics: dict) -> int:
+    """Print the spec's ``ours`` row against issue 37's targets: recovered-grid check passed on
+    >= ``TARGET_GRID`` of the dances and its chance row on <= ``TARGET_GRID_CHANCE``, speed
+    factor within ``TARGET_SPEED``, the two-sample classifier <= ``TARGET_CLASSIFIER`` on the
+    songs inside ``STYLE_RANGE_BPM``; the number missed."""
+    dances = [d for song in metrics["songs"] for d in song["rows"]["ours"]["dances"]]
+    passed = sum(bool(d.get("grid_passed")) for d in dances) / max(len(dances), 1)
+    chance = sum(bool(d.get("grid_passed_other")) for d in dances) / max(len(dances), 1)
+    lo = min(d.get("speed_factor_min", 1.0) for d in dances) if dances else 1.0
+    hi = max(d.get("speed_factor_max", 1.0) for d in dances) if dances else 1.0
+    inside = [
+        s["rows"]["ours"].get("classifier")
+        for s in metrics["songs"]
+        if STYLE_RANGE_BPM[0] <= s["analysis"]["tempo_bpm"] <= STYLE_RANGE_BPM[1]
+    ]
+    worst = max((c for c in inside if c is not None), default=None)
+    checks = [
+        (f"recovered grid passed {passed:.2f} >= {TARGET_GRID}", passed >= TARGET_GRID),
+        (f"its chance row {chance:.2f} <= {TARGET_GRID_CHANCE}", chance <= TARGET_GRID_CHANCE),
+        (
+            f"speed factor {lo:.2f}-{hi:.2f} within {TARGET_SPEED}",
+            TARGET_SPEED[0] <= lo and hi <= TARGET_SPEED[1],
+        ),
+        (
+            f"classifier on songs in {STYLE_RANGE_BPM} BPM {_fmt(worst).strip()} <= "
+            f"{TARGET_CLASSIFIER}",
+            worst is None or worst <= TARGET_CLASSIFIER,
+        ),
+    ]
+    for text, ok in checks:
+        print(f"  {'ok  ' if ok else 'MISS'} {text}")
+    return sum(not ok for _, ok in checks)
 
 
 def real_songs(folder: Path, per_genre: int) -> list[Path]:
@@ -280,14 +311,16 @@ def main() -> int:
         for k, (title, lib, songs) in enumerate(sets):
             metrics = harness.evaluate(songs, lib, spec, out / f"set{k}", rows=args.rows)
             _print_sync(title, metrics)
-            missed += _targets(metrics, songs)
+            _sync_per_song(metrics, songs)
             runs = {"spec": metrics}
             if args.accent_row > 0:
                 runs[f"acc {args.accent_row:g}"] = harness.evaluate(
                     songs, lib, accented, out / f"set{k}-accent", rows=["ours"]
                 )
             _print_natural(title, runs)
-    print(f"\n{missed} song runs miss a target; {time.perf_counter() - t0:.0f} s wall")
+            if lib is salsa:
+                missed += _natural_targets(metrics)
+    print(f"\n{missed} naturalness targets missed; {time.perf_counter() - t0:.0f} s wall")
     return 0
 
 
