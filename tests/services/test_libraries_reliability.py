@@ -2,7 +2,9 @@
 uvicorn, Celery workers, the reaper), once on the filesystem object store and once on the S3
 store: a worker SIGKILLed mid-build is taken over and the version is built once, the previous
 version serving until then; a Redis restart that loses the queued import loses no library.
-Takes: a 30-take generated library (``dancegraph.motion.demo``)."""
+Takes: a 12-take generated library (``dancegraph.motion.demo``), its graph's arrays under the S3
+store's multipart threshold; the stuck timeout is 20 s here (the reaper also aborts multipart
+uploads older than twice the timeout, which a build's upload must outlast)."""
 
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ pytestmark = [pytest.mark.services, pytest.mark.slow]
 
 @pytest.fixture(scope="module")
 def takes(tmp_path_factory) -> Path:
-    return write_demo_library(tmp_path_factory.mktemp("takes") / "lib", n_takes=30)
+    return write_demo_library(tmp_path_factory.mktemp("takes") / "lib", n_takes=12)
 
 
 @pytest.fixture(scope="module", params=["fs", "s3"])
@@ -55,6 +57,7 @@ def cluster(request, tmp_path_factory):
             c = make_cluster(
                 home, url, redis_url(), home / "scratch", f"s3://{bucket}/store", store_env
             )
+        c.env["DANCEGRAPH_JOB_TIMEOUT_S"] = "20"
         try:
             c.api_key = create_key(url, "studio")
             c.start_api()
