@@ -4,7 +4,7 @@ off by default, on).
 
 Usage: ``python bench/bench_real_music.py [--root DIR] [--held-out-last K] [--batch]
 [--non-music DIR] [--music DIR] [--lead-silence S ...] [--excerpt-start S ...]
-[--reference DIR]``; the annotated folder comes from
+[--reference DIR] [--full DIR]``; the annotated folder comes from
 ``--root`` or ``$DANCEGRAPH_REAL_MUSIC`` and its part skips (exit 0) when neither names one.
 The recordings are copyrighted: they live outside the repository, are never committed, and
 only the numbers go to docs/music.md.
@@ -17,8 +17,10 @@ annotations past the end of the audio are dropped; a file without beat-in-bar nu
 left out of the tables and scored apart, for beat F and ``no_beat`` only (the default analysis).
 The genre is the name up to its first ``.`` or ``_``.
 
-Metrics: beat F and downbeat F at ±70 ms (``signal.beat_f_measure``); meter accuracy (the
-annotated beats per bar; a 2/4 piece reported in 4 counts as right: the dance bar is 4 beats);
+Metrics: the headline is downbeat F at the metrical level the analysis counts (``counted``,
+below); beat F and downbeat F at ±70 ms (``signal.beat_f_measure``); meter accuracy (the
+annotated beats per bar; a 2/4 piece reported in 4 counts as right: the dance bar is 4 beats)
+and the music meter's (``music``: the meter reported beside the dance bar, exactly);
 tempo-octave errors (the reported tempo more than 8 % off the annotated one, 60 / median
 interval: counted at x2, x1/2 or other); false ``no_beat`` (every file is music); and the
 default's downbeat F at the metrical level it counts (where the annotation's tempo is twice or
@@ -36,6 +38,8 @@ DIR`` of music without annotations, where each should get beats (false ``no_beat
 music starting later, or an excerpt of it, must get the same bars). ``--reference DIR`` scores
 another tracker's output (``DIR/<clip>.beats``, ``time beat-in-bar``, e.g. a public
 implementation run outside the project) as a row beside the default, with the same metrics.
+``--full DIR`` (repeatable; annotations not needed) scores the excerpt consistency of full
+songs: each analysed whole and from a third and from half of its length.
 """
 
 from __future__ import annotations
