@@ -739,7 +739,8 @@ def load_song(
     from dancegraph.music.decode import load_audio
 
     if analysis is None:
-        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph))
+        params = spec.analysis_params() if spec is not None else None
+        analysis = analyze(path, tempo_range=style_tempo_range(spec, graph), params=params)
     if graph is not None:
         analysis = add_music_terms(analysis, graph, path)
     y, sr = load_audio(path, sr=22050)
