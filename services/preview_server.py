@@ -62,10 +62,12 @@ def render_page(
     assets: str = ASSETS_PATH,
     rig_poses: list[str] | None = None,
     rig_models: list[str] | None = None,
+    follow_poses: list[str] | None = None,
 ) -> HTMLResponse:
     """The page with its config: URLs of the song, the timeline and each alternative's poses
     (``rig_poses``: the same alternatives on the user's rig, when the result has them;
-    ``rig_models``: each alternative's ``.rig.glb``, the character the page draws).
+    ``rig_models``: each alternative's ``.rig.glb``, the character the page draws;
+    ``follow_poses``: a couple's follow, drawn beside ``poses``, the lead, in the same world).
 
     503 ``preview_not_built`` when the front end has not been built.
     """
@@ -81,6 +83,8 @@ def render_page(
         config["rig_poses"] = rig_poses
     if rig_models:
         config["rig_models"] = rig_models
+    if follow_poses:
+        config["follow_poses"] = follow_poses
     # '<' escaped so no string in the config can close the <script> element
     text = json.dumps(config).replace("<", "\\u003c")
     html = template.read_text(encoding="utf-8")
@@ -151,14 +155,29 @@ def pose_cache_key(prefix: str, bvh: Path) -> str:
     return f"{prefix}/{file_sha256(bvh)[:32]}.v{POSE_FORMAT}.json.gz"
 
 
-def rig_unit_scale(timeline_path: Path, k: int) -> float:
+def rig_unit_scale(timeline_path: Path, k: int, partner: str | None = None) -> float:
     """Metres per unit of alternative ``k``'s dance on the rig (its ``rig`` report in the
-    timeline; 1.0 when absent): a rig read from centimetres gets its BVH in centimetres."""
+    timeline, a couple's per ``partner``; 1.0 when absent): a rig read from centimetres gets
+    its BVH in centimetres."""
     try:
         alt = json.loads(timeline_path.read_text(encoding="utf-8"))["alternatives"][k]
-        return float((alt.get("rig") or {}).get("unit_scale", 1.0))
+        rig = alt.get("rig") or {}
+        return float((rig.get(partner) or {} if partner else rig).get("unit_scale", 1.0))
     except (OSError, ValueError, KeyError, IndexError, TypeError):
         return 1.0
+
+
+def couple_pose_file(k: int, partner: str) -> str:
+    """A couple's dancer's BVH in a result: ``alternatives/<k>/<partner>.bvh``."""
+    return f"alternatives/{k}/{partner}.bvh"
+
+
+def pose_file(k: int, skeleton: str, partner: str | None) -> str:
+    """The result file the pose route of alternative ``k`` reads: ``alternatives/<k>.bvh``
+    (``skeleton`` ``rig``: ``<k>.rig.bvh``), or with ``partner`` (``lead``, ``follow``) that
+    dancer of a couple (``<k>/<partner>.bvh``, ``.rig.bvh``)."""
+    tail = ".rig.bvh" if skeleton == "rig" else ".bvh"
+    return f"alternatives/{k}/{partner}{tail}" if partner else f"alternatives/{k}{tail}"
 
 
 def pose_json_gz(
@@ -210,8 +229,10 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
     problems.install(app)
     app.include_router(static_router)
 
+    couple = (folder / couple_pose_file(0, "lead")).is_file()
     on_rig = (folder / "alternatives" / "0.rig.bvh").is_file()
     models = on_rig and (folder / "alternatives" / "0.rig.glb").is_file()
+    lead = "?partner=lead" if couple else ""
 
     @app.get("/", response_class=HTMLResponse)
     def page():
@@ -219,7 +240,10 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
             title=f"{song.name} · {folder.name}",
             audio="audio",
             timeline="timeline.json",
-            poses=[f"poses/{k}.json" for k in range(n_alternatives)],
+            poses=[f"poses/{k}.json{lead}" for k in range(n_alternatives)],
+            follow_poses=[f"poses/{k}.json?partner=follow" for k in range(n_alternatives)]
+            if couple
+            else None,
             assets=ASSETS_PATH,
             rig_poses=[f"poses/{k}.json?skeleton=rig" for k in range(n_alternatives)]
             if on_rig
@@ -243,15 +267,11 @@ def create_local_app(result_dir: str | Path, audio: str | Path | None = None) ->
         request: Request,
         k: int = PathParam(..., ge=0, le=99),
         skeleton: Literal["library", "rig"] = "library",
+        partner: Literal["lead", "follow"] | None = None,
     ):
-        if skeleton == "rig":
-            scale = rig_unit_scale(folder / TIMELINE, k)
-            gz = pose_json_gz(
-                folder / "alternatives" / f"{k}.rig.bvh", k, cache, "poses", scale=scale
-            )
-        else:
-            gz = pose_json_gz(folder / "alternatives" / f"{k}.bvh", k, cache, "poses")
-        return json_response(request, gz)
+        scale = rig_unit_scale(folder / TIMELINE, k, partner) if skeleton == "rig" else 1.0
+        bvh = folder / pose_file(k, skeleton, partner)
+        return json_response(request, pose_json_gz(bvh, k, cache, "poses", scale=scale))
 
     @app.get("/audio")
     def song_file():

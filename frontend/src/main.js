@@ -1,6 +1,7 @@
 // The preview page: the song's <audio> element is the clock; every animation frame samples the
 // chosen alternative's pose at audio.currentTime and draws the skeleton as capsules on a floor
-// grid with the stage bounds. The timeline under the view shows phrases, bars and the chosen
+// grid with the stage bounds (a couple: the lead and the follow, config.follow_poses, in one
+// world frame, each in its own colours). The timeline under the view shows phrases, bars and the chosen
 // node per bar; clicking a bar shows its cost breakdown. Data URLs come from the JSON config the
 // server puts into the page (API: signed ?token= URLs; `dancegraph preview`: local paths).
 import * as THREE from "three";
@@ -26,6 +27,8 @@ const state = {
   bar: -1,
   selectedBar: -1,
   pose: null, // Float32Array J·3 of the pose last drawn (metres)
+  followTrack: null, // a couple's follow (config.follow_poses), drawn beside the lead
+  followPose: null,
 };
 
 function setStatus(text, isError = false) {
@@ -128,10 +131,18 @@ sun.position.set(3, 6, 4);
 scene.add(sun);
 scene.add(new THREE.GridHelper(20, 40, 0x59627a, 0x2f3542));
 
-const boneMaterial = new THREE.MeshStandardMaterial({ color: 0x79c0ff, roughness: 0.5 });
-const jointMaterial = new THREE.MeshStandardMaterial({ color: 0xffa657, roughness: 0.4 });
-let bones = null; // InstancedMesh of unit cylinders, one per (joint, parent) pair
-let joints = null; // InstancedMesh of spheres, one per joint
+// A drawn skeleton: bones, an InstancedMesh of unit cylinders, one per (joint, parent) pair;
+// joints, one of spheres, one per joint. The lead (or a solo dancer) and a couple's follow.
+function figure(boneColor, jointColor) {
+  return {
+    boneMaterial: new THREE.MeshStandardMaterial({ color: boneColor, roughness: 0.5 }),
+    jointMaterial: new THREE.MeshStandardMaterial({ color: jointColor, roughness: 0.4 }),
+    bones: null,
+    joints: null,
+  };
+}
+const lead = figure(0x79c0ff, 0xffa657);
+const follow = figure(0xf778ba, 0xd2a8ff);
 let stageLines = null;
 
 function resize() {
@@ -164,17 +175,22 @@ function drawStage(stage) {
   scene.add(stageLines);
 }
 
-function buildSkeleton(track) {
-  for (const mesh of [bones, joints]) {
+function removeSkeleton(fig) {
+  for (const mesh of [fig.bones, fig.joints]) {
     if (mesh) {
       scene.remove(mesh);
       mesh.dispose();
     }
   }
+  fig.bones = fig.joints = null;
+}
+
+function buildSkeleton(fig, track) {
+  removeSkeleton(fig);
   const nBones = track.parents.filter((p) => p >= 0).length;
-  bones = new THREE.InstancedMesh(new THREE.CylinderGeometry(1, 1, 1, 10), boneMaterial, nBones);
-  joints = new THREE.InstancedMesh(new THREE.SphereGeometry(1, 12, 8), jointMaterial, track.parents.length);
-  for (const mesh of [bones, joints]) {
+  fig.bones = new THREE.InstancedMesh(new THREE.CylinderGeometry(1, 1, 1, 10), fig.boneMaterial, nBones);
+  fig.joints = new THREE.InstancedMesh(new THREE.SphereGeometry(1, 12, 8), fig.jointMaterial, track.parents.length);
+  for (const mesh of [fig.bones, fig.joints]) {
     mesh.instanceMatrix.setUsage(THREE.DynamicDrawUsage);
     mesh.frustumCulled = false;
     scene.add(mesh);
@@ -206,7 +222,8 @@ function samplePose(track, t, out = null) {
   return out;
 }
 
-function drawPose(track, pose) {
+function drawPose(fig, track, pose) {
+  const { bones, joints } = fig;
   let k = 0;
   for (let j = 0; j < track.parents.length; j++) {
     _a.set(pose[j * 3], pose[j * 3 + 1], pose[j * 3 + 2]);
@@ -348,8 +365,7 @@ function poseUrl(k) {
   return state.skeleton === "rig" && config.rig_poses ? config.rig_poses[k] : config.poses[k];
 }
 
-async function loadTrack(k) {
-  const url = poseUrl(k);
+async function loadTrack(k, url = poseUrl(k)) {
   if (!state.tracks[url]) {
     state.tracks[url] = getJson(url).then((raw) => {
       const scale = raw.unit === "mm" ? 0.001 : 1;
@@ -395,21 +411,27 @@ async function showModel(k) {
   if (state.model && state.model !== model) scene.remove(state.model.root);
   if (model && state.model !== model) scene.add(model.root);
   state.model = model;
-  for (const mesh of [bones, joints]) if (mesh) mesh.visible = !model;
+  for (const mesh of [lead.bones, lead.joints]) if (mesh) mesh.visible = !model;
   $("view-toggle").textContent = model ? "Skeleton view" : "Character view";
 }
 
 async function setAlternative(k) {
   k = Number(k);
   const track = await loadTrack(k);
+  // a couple's follow, on the library skeleton (the lead's rig view is a solo job's)
+  const second = config.follow_poses ? await loadTrack(k, config.follow_poses[k]) : null;
   state.alternative = k;
   $("alternative").value = String(k);
-  if (!sameSkeleton(state.track, track)) buildSkeleton(track);
+  if (!sameSkeleton(state.track, track)) buildSkeleton(lead, track);
+  if (!second) removeSkeleton(follow);
+  else if (!sameSkeleton(state.followTrack, second) || !follow.bones) buildSkeleton(follow, second);
   if (!framedBox) {
     framedBox = trackBox(track);
+    if (second) framedBox.union(trackBox(second));
     frameBox(framedBox);
   }
   state.track = track;
+  state.followTrack = second;
   labelNodes();
   await showModel(k);
   return k;
@@ -419,7 +441,11 @@ function frame() {
   if (state.track) {
     const t = audio.currentTime;
     state.pose = samplePose(state.track, t, state.pose);
-    drawPose(state.track, state.pose);
+    drawPose(lead, state.track, state.pose);
+    if (state.followTrack) {
+      state.followPose = samplePose(state.followTrack, t, state.followPose);
+      drawPose(follow, state.followTrack, state.followPose);
+    }
     if (state.model) state.model.mixer.setTime(t);
     const b = barAt(t);
     if (b !== state.bar) {
@@ -536,6 +562,12 @@ window.__preview = {
   },
   setView,
   pose: () => (state.pose ? Array.from(state.pose) : null),
+  // a couple: the follow's pose last drawn (null for a solo dance), and how many skeletons the
+  // scene holds (1, or 2 for a couple)
+  followPose: () => (state.followTrack && state.followPose ? Array.from(state.followPose) : null),
+  get skeletons() {
+    return [lead, follow].filter((f) => f.joints && f.joints.parent === scene).length;
+  },
   poseAt: (t) => (state.track ? Array.from(samplePose(state.track, t)) : null),
   seek,
   play: () => audio.play(),

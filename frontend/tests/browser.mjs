@@ -6,8 +6,8 @@
 //
 // Observed: console errors, page errors and failed requests; non-background canvas pixels;
 // the pose at two seek times; the clock and pose after real playback; the pose after switching
-// the alternative at SWITCH_TIME_S; the pose on the user's rig where the page offers it; the cost
-// breakdown shown after clicking a bar.
+// the alternative at SWITCH_TIME_S; a couple's two skeletons and both poses at three times; the
+// pose on the user's rig where the page offers it; the cost breakdown shown after clicking a bar.
 import { chromium } from "playwright-core";
 
 const [url, screenshot, switchTimeArg] = process.argv.slice(2);
@@ -67,6 +67,16 @@ try {
   };
   out.seek_a = await poseAt(0.5);
   out.seek_b = await poseAt(switchTime);
+  // a couple: both skeletons in the scene, the lead's and the follow's pose at a few times
+  out.couple = null;
+  if (await page.evaluate(() => window.__preview.followPose() !== null)) {
+    const at = [];
+    for (const t of [0.5, switchTime, 2 * switchTime]) {
+      const seen = await poseAt(t);
+      at.push({ ...seen, follow: await page.evaluate(() => window.__preview.followPose()) });
+    }
+    out.couple = { skeletons: await page.evaluate(() => window.__preview.skeletons), at };
+  }
   // non-background pixels of the WebGL canvas (preserveDrawingBuffer keeps the last frame)
   out.canvas = await page.evaluate(() => {
     const src = document.querySelector("#view canvas");

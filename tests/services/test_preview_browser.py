@@ -22,7 +22,7 @@ import pytest
 
 from dancegraph.preview import pose_track_file
 from tests.services.preview_result import switch_time, synthesized
-from tests.services.test_preview import finish_with
+from tests.services.test_preview import finish_with, page_config
 from tests.services.test_worker_harness import free_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -221,3 +221,69 @@ def test_preview_page_shows_the_character_in_chromium(tmp_path_factory, tmp_path
     assert toggled["view"] == "skeleton" and toggled["box"] is None
     assert Path(seen["character"]["screenshot"]).stat().st_size > 10_000
     assert seen["rig"] is not None  # the skeleton switch still works beside it
+
+
+@pytest.fixture(scope="module")
+def couple_result(salsa_dir: Path, tmp_path_factory) -> tuple[Path, Path]:
+    """``dancegraph synthesize --couple`` (2 alternatives) of the generated test song on the
+    couple graph of two real salsa pairs (60_03/61_03, 60_04/61_04): (output folder, song)."""
+    from dancegraph.cli import main
+    from dancegraph.couple.graph import build_couple_graph
+    from dancegraph.motion.dataset import import_dataset
+    from dancegraph.store import FileStore
+    from tests.demo import demo_song
+    from tests.services.test_worker_couple import MANIFEST
+
+    root = tmp_path_factory.mktemp("couple_preview")
+    store = FileStore(root / "store")
+    import_dataset(salsa_dir, "pairs", store, MANIFEST)
+    build_couple_graph(store, "pairs")
+    wav, _ = demo_song(root)
+    spec = root / "spec.json"
+    spec.write_text(json.dumps({"output": {"formats": ["bvh"]}, "alternatives": 2}))
+    argv = ["synthesize", str(wav), "--dataset", "pairs", "--couple", "--out", str(root / "out")]
+    assert main([*argv, "--spec", str(spec), "--store", str(store.root)]) == 0
+    return root / "out", wav
+
+
+def test_preview_page_draws_a_couple_in_chromium(api, couple_result):
+    """A couple job's preview (``alternatives/<k>/lead.bvh``, ``follow.bvh``) draws two
+    skeletons in one world: each pose the page draws is its BVH's, the hips 0.2-1.9 m apart
+    (the library's p1-p99 band is 0.200-1.869 m)."""
+    from services.preview_server import create_local_app
+
+    node = _require_browser()
+    out, wav = couple_result
+    job_id = api.submit(wav.read_bytes(), {"alternatives": 2}).json()["id"]
+    finish_with(api, job_id, out)
+    preview_url = api.get(f"/v1/jobs/{job_id}").json()["preview_url"]
+    artifacts = Path(os.environ.get("DANCEGRAPH_TEST_ARTIFACTS", REPO / "test-artifacts"))
+    artifacts.mkdir(parents=True, exist_ok=True)
+    shot = artifacts / "preview-couple.png"
+    shot.unlink(missing_ok=True)
+    seen = _browse(node, api.app, preview_url, shot, 1.5)
+    assert seen["error"] is None and seen["console_errors"] == [] and seen["page_errors"] == []
+    assert seen["failed_requests"] == [] and seen["alternatives"] == 2
+    assert seen["couple"]["skeletons"] == 2
+    tracks = {p: pose_track_file(out / f"alternatives/0/{p}.bvh") for p in ("lead", "follow")}
+    for at in seen["couple"]["at"]:
+        drawn = {"lead": at["pose"], "follow": at["follow"]}
+        for partner, track in tracks.items():
+            frame = min(round(at["time"] * track["fps"]), track["frames"] - 1)
+            n = 3 * len(track["joints"])
+            want = np.asarray(track["positions"][frame * n : (frame + 1) * n]) / 1000.0
+            assert _moved(drawn[partner], want) < 0.1  # the file's pose, within a frame's motion
+        hips = np.linalg.norm(np.subtract(at["pose"][:3], at["follow"][:3]))
+        assert 0.2 < hips < 1.9
+    assert shot.is_file() and shot.stat().st_size > 10_000
+    # the local server of the same folder names both dancers' tracks; a solo name is a 404
+    from fastapi.testclient import TestClient
+
+    local = TestClient(create_local_app(out, wav))
+    config = page_config(local.get("/").text)
+    assert config["poses"][1] == "poses/1.json?partner=lead"
+    assert config["follow_poses"][1] == "poses/1.json?partner=follow"
+    follow = local.get(config["follow_poses"][0]).json()
+    assert follow["positions"][:n] == tracks["follow"]["positions"][:n]
+    assert local.get("/poses/0.json").status_code == 404
+    assert local.get("/poses/0.json?partner=both").status_code == 422

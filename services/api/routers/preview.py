@@ -29,8 +29,10 @@ from services.config import Settings
 from services.models import Job, Tenant
 from services.preview_server import (
     audio_media_type,
+    couple_pose_file,
     json_bytes_response,
     json_response,
+    pose_file,
     pose_json_gz,
     render_page,
     rig_unit_scale,
@@ -61,12 +63,17 @@ def pose_cache_prefix(job_id: str) -> str:
     return jobs.result_key(job_id, "preview")
 
 
-def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool, bool]:
-    """How many alternatives the job has (library ``<k>.bvh``), whether they are on a rig, and
-    whether as the rig's character too (``<k>.rig.glb``)."""
+def _alternatives(store: ObjectStore, job: Job) -> tuple[int, bool, bool, bool]:
+    """How many alternatives the job has (library ``<k>.bvh``, or a couple's
+    ``<k>/lead.bvh``), whether they are on a rig, whether as the rig's character too
+    (``<k>.rig.glb``), and whether it is a couple (the rig views are offered for solo jobs)."""
+    files = jobs.result_files(store, job.id)
+    n_couple = sum(1 for k in range(100) if couple_pose_file(k, "lead") in files)
+    if n_couple:
+        return n_couple, False, False, True
     on_rig = bool(jobs.bvh_files(store, job.id, rig=True))
-    models = on_rig and "alternatives/0.rig.glb" in jobs.result_files(store, job.id)
-    return len(jobs.bvh_files(store, job.id)), on_rig, models
+    models = on_rig and "alternatives/0.rig.glb" in files
+    return len(jobs.bvh_files(store, job.id)), on_rig, models, False
 
 
 @router.get(
@@ -80,18 +87,22 @@ def preview_page(
     settings: Settings = Depends(get_settings_dep),
     store: ObjectStore = Depends(get_store),
 ):
-    n_alternatives, on_rig, models = _alternatives(store, job)
+    n_alternatives, on_rig, models, couple = _alternatives(store, job)
     if not n_alternatives:
         raise ApiError(
             404, "result_not_found", f"job {job.id} has no dance to show", field="job_id"
         )
     q = f"?token={make_token(settings, job.id)}"
     base = job_url(settings, job.id, "/preview")
+    lead = "&partner=lead" if couple else ""
     return render_page(
         title=job.audio_filename or job.id,
         audio=f"{base}/audio{q}",
         timeline=f"{base}/timeline.json{q}",
-        poses=[f"{base}/poses/{k}.json{q}" for k in range(n_alternatives)],
+        poses=[f"{base}/poses/{k}.json{q}{lead}" for k in range(n_alternatives)],
+        follow_poses=[f"{base}/poses/{k}.json{q}&partner=follow" for k in range(n_alternatives)]
+        if couple
+        else None,
         assets=f"{settings.public_base_url}/preview-static",
         rig_poses=[f"{base}/poses/{k}.json{q}&skeleton=rig" for k in range(n_alternatives)]
         if on_rig
@@ -151,7 +162,7 @@ def preview_rig_model(
 
 @router.get(
     "/{job_id}/preview/poses/{k}.json",
-    summary="World joint positions of alternative k per frame (dancegraph.preview.pose_track)",
+    summary="World joint positions of alternative k (of a couple: one dancer) per frame",
     responses={**JSON_OK, **ERRORS, 422: PROBLEM},
 )
 def preview_poses(
@@ -160,16 +171,19 @@ def preview_poses(
     skeleton: Literal["library", "rig"] = Query(
         "library", description="the motion library's skeleton, or the job's rig (output.rig)"
     ),
+    partner: Literal["lead", "follow"] | None = Query(
+        None, description="a couple job's dancer (alternatives/<k>/<partner>.bvh)"
+    ),
     job: Job = Depends(preview_job),
     store: ObjectStore = Depends(get_store),
 ):
     files = jobs.result_files(store, job.id)
-    name = f"alternatives/{k}.rig.bvh" if skeleton == "rig" else f"alternatives/{k}.bvh"
+    name = pose_file(k, skeleton, partner)
     key = files.get(name)
     if key is None:
-        raise ApiError(404, "result_not_found", f"no alternative {k} ({skeleton})", field="k")
+        raise ApiError(404, "result_not_found", f"no alternative {k} ({name})", field="k")
     scale = 1.0
     if skeleton == "rig" and TIMELINE in files:
-        scale = rig_unit_scale(store.local_path(files[TIMELINE]), k)
+        scale = rig_unit_scale(store.local_path(files[TIMELINE]), k, partner)
     gz = pose_json_gz(store.local_path(key), k, store, pose_cache_prefix(job.id), scale=scale)
     return json_response(request, gz)
