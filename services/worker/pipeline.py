@@ -284,8 +284,8 @@ def render_couple_result(
 ) -> list[str]:
     """A couple job (``spec.couple``): the search on ``spec.dataset``'s couple graph in this
     process (``couple.graph.open_couple_graph``; the graph store serves solo graphs) and the
-    render for two (``alternatives/<k>/lead.bvh``, ``follow.bvh`` and ``couple.glb``, no FBX:
-    the fbx queue converts solo alternatives), published at ``jobs/<job_id>/``; returns the file
+    render for two (``alternatives/<k>/lead.bvh``, ``follow.bvh`` and ``couple.glb``; FBX is
+    the fbx queue's: ``fbx_sources``), published at ``jobs/<job_id>/``; returns the file
     names. ``rigs``: per partner the rig hook (``job_rig_output``; None: no rig), which writes
     ``alternatives/<k>/<partner>.rig.bvh|glb``.
     Raises NotFoundError(``couple_graph_missing``) where the library has no couple graph."""
@@ -317,16 +317,40 @@ def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
     return sorted(jobs.result_files(store, job_id))
 
 
+def fbx_sources(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[str]:
+    """The BVH files of a job the fbx queue converts: each alternative's ``<k>.bvh`` and a
+    couple's ``<k>/lead.bvh``, ``<k>/follow.bvh`` (the library's skeleton), or with ``rig``
+    the solo ``<k>.rig.bvh`` (a couple's dancers on their rigs get no FBX)."""
+    if rig:
+        return jobs.bvh_files(store, job_id, rig=True)
+    couple = [
+        name
+        for name in jobs.result_files(store, job_id)
+        if name.startswith("alternatives/")
+        and name.rsplit("/", 1)[-1] in ("lead.bvh", "follow.bvh")
+        and name.split("/")[1].isdigit()
+    ]
+    return jobs.bvh_files(store, job_id) + sorted(couple)
+
+
+def fbx_missing(store: ObjectStore, job_id: str) -> bool:
+    """Whether some ``fbx_sources`` BVH of the job has no FBX beside it yet."""
+    done = jobs.result_files(store, job_id)
+    names = fbx_sources(store, job_id) + fbx_sources(store, job_id, rig=True)
+    return not all(n[: -len(".bvh")] + ".fbx" in done for n in names)
+
+
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
-    """Add ``alternatives/<k>.fbx`` beside each ``<k>.bvh`` (skipping ones already there), and
-    with ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``. Raises
+    """Add an FBX beside each ``fbx_sources`` BVH (``alternatives/<k>.fbx``, a couple's
+    ``<k>/lead.fbx`` and ``<k>/follow.fbx``; skipping ones already there), and with
+    ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``. Raises
     DanceGraphError ``result_missing`` when the published result leaves the store meanwhile."""
     from services.worker import fbx_export
 
     prefix = jobs.result_key(job_id)
-    todo = [(name, None) for name in jobs.bvh_files(store, job_id)]
+    todo = [(name, None) for name in fbx_sources(store, job_id)]
     if on_rig is not None:
-        todo += [(name, on_rig) for name in jobs.bvh_files(store, job_id, rig=True)]
+        todo += [(name, on_rig) for name in fbx_sources(store, job_id, rig=True)]
     for i, (name, writer) in enumerate(todo):
         files = published_result(store, job_id)
         fbx_name = name[: -len(".bvh")] + ".fbx"
@@ -449,6 +473,9 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
                 )
             }
             files = render_couple_result(store, job_id, spec, analysis, source, rigs)
+            if wants_fbx(spec) and fbx_missing(store, job_id):
+                state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
+                return RunOutcome("fbx_queued", files)
             state.progress(job_id, "finalize", STAGES["finalize"])
             finalize(store, job_id)
             return RunOutcome("succeeded", files)
@@ -467,11 +494,7 @@ def run_job(job_id: str, settings: Settings | None = None) -> RunOutcome:
         )
         files = render(store, job_id, spec, analysis, found, source, on_rig, library)
         beat.check()
-        done = jobs.result_files(store, job_id)
-        if wants_fbx(spec) and not all(
-            n[: -len(".bvh")] + ".fbx" in done
-            for n in jobs.bvh_files(store, job_id) + jobs.bvh_files(store, job_id, rig=True)
-        ):
+        if wants_fbx(spec) and fbx_missing(store, job_id):
             state.progress(job_id, "fbx_queued", STAGES["fbx_queued"])
             return RunOutcome("fbx_queued", files)
         state.progress(job_id, "finalize", STAGES["finalize"])
@@ -489,9 +512,7 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "fbx", STAGES["fbx"])
-        n = max(
-            1, len(jobs.bvh_files(store, job_id)) + len(jobs.bvh_files(store, job_id, rig=True))
-        )
+        n = max(1, len(fbx_sources(store, job_id)) + len(fbx_sources(store, job_id, rig=True)))
         span = STAGES["finalize"] - STAGES["fbx"]
 
         def on_file(i: int) -> None:
