@@ -15,6 +15,10 @@ Requests:
   "seconds": 1.2}``: a rig file (FBX, GLB/glTF or BVH) imported as it is, with its skinned
   meshes, posed by a dance and written as FBX (see :func:`animate_rig`); a BVH dance is sent as
   its own rest pose (the rig) and its frames (the parent's ``FbxExporter.convert``);
+- ``{"id": 5, "op": "glb_to_fbx", "glb": GLB, "fbx": OUT, "fps": 30.0, "frames": F}`` →
+  ``{"id": 5, "ok": true, "frames": F, "fps": 30.0, "armatures": {name: bones}, "seconds": 0.9}``:
+  every skinned skeleton of an animated GLB (a couple's ``couple.glb``: ``lead`` and ``follow``)
+  imported by Blender's glTF importer and written as one FBX (see :func:`glb_to_fbx`);
 - ``{"id": 2, "op": "ping"}`` → ``{"id": 2, "ok": true}``
 - ``{"id": 3, "op": "quit"}`` → ``{"id": 3, "ok": true}`` and the process exits.
 A failed request answers ``{"id": N, "ok": false, "error": "..."}`` and the worker keeps serving.
@@ -196,6 +200,36 @@ def animate_rig(rig_path: str, anim_path: str, fbx_path: str) -> dict:
         "joints": len(poses),
         "meshes": len(meshes),
         "first_frame": first,
+        "seconds": round(time.perf_counter() - t0, 4),
+    }
+
+
+def glb_to_fbx(glb_path: str, fbx_path: str, fps: float, frames: int) -> dict:
+    """Import the animated GLB ``glb_path`` into an empty scene at ``fps`` and write its
+    armatures (their animation baked on frames ``0 .. frames - 1``) as ``fbx_path``; the glTF
+    importer's bone display shapes are left out. Raises RuntimeError when the import fails or
+    brings no armature."""
+    t0 = time.perf_counter()
+    _LOADED.clear()
+    clear_scene()
+    scene = bpy.context.scene
+    scene.render.fps = max(1, int(round(fps)))
+    scene.render.fps_base = scene.render.fps / fps
+    result = bpy.ops.import_scene.gltf(filepath=glb_path)
+    if "FINISHED" not in result:
+        raise RuntimeError(f"{glb_path}: Blender could not import the GLB ({result})")
+    armatures = {ob.name: len(ob.data.bones) for ob in scene.objects if ob.type == "ARMATURE"}
+    if not armatures:
+        raise RuntimeError(f"{glb_path}: no armature after import")
+    scene.frame_start = 0
+    scene.frame_end = frames - 1
+    scene.frame_set(0)
+    export_fbx(fbx_path, {"ARMATURE"})
+    clear_scene()
+    return {
+        "frames": frames,
+        "fps": scene.render.fps / scene.render.fps_base,
+        "armatures": armatures,
         "seconds": round(time.perf_counter() - t0, 4),
     }
 
@@ -443,6 +477,11 @@ def serve() -> int:
             op = req.get("op")
             if op == "animate_rig":
                 summary = animate_rig(str(req["rig"]), str(req["anim"]), str(req["fbx"]))
+                _send({"id": req_id, "ok": True, **summary})
+            elif op == "glb_to_fbx":
+                summary = glb_to_fbx(
+                    str(req["glb"]), str(req["fbx"]), float(req["fps"]), int(req["frames"])
+                )
                 _send({"id": req_id, "ok": True, **summary})
             elif op == "ping":
                 _send({"id": req_id, "ok": True})

@@ -329,6 +329,27 @@ class FbxExporter:
         keys = ("frames", "fps", "joints", "meshes", "first_frame", "seconds")
         return {k: reply[k] for k in keys if k in reply}
 
+    def glb_to_fbx(
+        self, glb_path: str | os.PathLike, fbx_path: str | os.PathLike, *, fps: float, frames: int
+    ) -> dict:
+        """Write every armature of the animated GLB ``glb_path`` (a couple's ``couple.glb``: the
+        lead and the follow) into one FBX ``fbx_path``, ``frames`` frames at ``fps`` from t = 0
+        (``blender_worker.glb_to_fbx``); returns ``{frames, fps, armatures: {name: bones},
+        seconds}``. Raises ``MotionFileError`` (``motion_file_not_found``) for a missing GLB and
+        ``FbxError`` when Blender fails."""
+        glb = Path(glb_path).resolve()
+        if not glb.is_file():
+            raise MotionFileError("no such file", path=str(glb_path), code="motion_file_not_found")
+        fbx = Path(fbx_path).resolve()
+        fbx.parent.mkdir(parents=True, exist_ok=True)
+        payload = {"op": "glb_to_fbx", "glb": str(glb), "fbx": str(fbx)}
+        payload.update(fps=float(fps), frames=int(frames))
+        with self._lock:
+            reply = self._request(payload, self.convert_timeout_s)
+        if not reply.get("ok"):
+            raise FbxError(f"FBX export of {glb.name} failed: {reply.get('error')}")
+        return {k: reply[k] for k in ("frames", "fps", "armatures", "seconds")}
+
 
 def _pump(stream, sink, mark_end: bool) -> None:
     """Copy lines from a child's pipe to ``sink``; then ``None`` marks the end if ``mark_end``."""
