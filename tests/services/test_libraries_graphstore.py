@@ -90,3 +90,14 @@ def test_a_pinned_version_answers_after_a_new_one_is_current(
     assert listed[name]["version"] == new and listed[name]["nodes"] > 0
     health = http._call("GET", "/healthz")
     assert health["memory"]["resident_bytes"] > 0 and health["memory"]["budget_bytes"] > 0
+
+
+def test_replicas_share_nothing_but_the_object_store(store: ObjectStore):
+    """Two graph-store processes over one store: a build landing through either is served by
+    both on their next call (each reads ``current`` from the store, nothing kept apart)."""
+    name = NAMES[2]
+    one, two = LocalGraphStore(store), LocalGraphStore(store)
+    before = one.graph(name).version
+    assert two.graph(name).version == before
+    new = copy_graph(store, "demo", name, version="v-replicas")
+    assert one.graph(name).version == two.graph(name).version == new != before
