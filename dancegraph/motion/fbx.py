@@ -342,7 +342,7 @@ class FbxExporter:
             raise MotionFileError("no such file", path=str(glb_path), code="motion_file_not_found")
         fbx = Path(fbx_path).resolve()
         fbx.parent.mkdir(parents=True, exist_ok=True)
-        payload = {"op": "glb_to_fbx", "glb": str(glb), "fbx": str(fbx)}
+        payload: dict[str, object] = {"op": "glb_to_fbx", "glb": str(glb), "fbx": str(fbx)}
         payload.update(fps=float(fps), frames=int(frames))
         with self._lock:
             reply = self._request(payload, self.convert_timeout_s)

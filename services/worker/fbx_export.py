@@ -17,6 +17,14 @@ def export(bvh: Path, fbx: Path, *, fps: float | None = None) -> dict:
     return shared_exporter().convert(bvh, fbx, fps=fps)
 
 
+def export_glb(glb: Path, fbx: Path, *, fps: float, frames: int) -> dict:
+    """Convert an animated GLB (a couple's ``couple.glb``) to one FBX of all its armatures with
+    this process's warm exporter (``FbxExporter.glb_to_fbx``)."""
+    from dancegraph.motion.fbx import shared_exporter
+
+    return shared_exporter().glb_to_fbx(glb, fbx, fps=fps, frames=frames)
+
+
 def close_exporter() -> None:
     """Stop this process's Blender child, if one was started."""
     import sys

@@ -333,39 +333,68 @@ def fbx_sources(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[s
     return jobs.bvh_files(store, job_id) + sorted(couple)
 
 
+def couple_glbs(store: ObjectStore, job_id: str) -> list[str]:
+    """A couple job's ``alternatives/<k>/couple.glb`` files, which the fbx queue turns into
+    one FBX of both dancers each (``couple.fbx``)."""
+    names = jobs.result_files(store, job_id)
+    return sorted(n for n in names if n.startswith("alternatives/") and n.endswith("/couple.glb"))
+
+
+def fbx_name(name: str) -> str:
+    """The FBX written beside the result file ``name`` (``<k>.bvh`` → ``<k>.fbx``,
+    ``<k>.rig.bvh`` → ``<k>.rig.fbx``, ``<k>/couple.glb`` → ``<k>/couple.fbx``)."""
+    return name.rsplit(".", 1)[0] + ".fbx"
+
+
 def fbx_missing(store: ObjectStore, job_id: str) -> bool:
-    """Whether some ``fbx_sources`` BVH of the job has no FBX beside it yet."""
+    """Whether some ``fbx_sources`` BVH or couple GLB of the job has no FBX beside it yet."""
     done = jobs.result_files(store, job_id)
     names = fbx_sources(store, job_id) + fbx_sources(store, job_id, rig=True)
-    return not all(n[: -len(".bvh")] + ".fbx" in done for n in names)
+    return not all(fbx_name(n) in done for n in names + couple_glbs(store, job_id))
+
+
+def _couple_fbx_writer(store: ObjectStore, job_id: str, glb_name: str):
+    """The writer of ``<k>/couple.fbx`` from ``glb_name``: both dancers at the rate and frame
+    count of the alternative's ``lead.bvh``."""
+    from dancegraph.motion.bvh import read_bvh
+    from services.worker import fbx_export
+
+    def write(glb: Path, out: Path) -> None:
+        lead_name = glb_name.rsplit("/", 1)[0] + "/lead.bvh"
+        lead = read_bvh(_result_file(store, published_result(store, job_id), lead_name))
+        fbx_export.export_glb(glb, out, fps=lead.fps, frames=lead.n_frames)
+
+    return write
 
 
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
     """Add an FBX beside each ``fbx_sources`` BVH (``alternatives/<k>.fbx``, a couple's
-    ``<k>/lead.fbx`` and ``<k>/follow.fbx``; skipping ones already there), and with
+    ``<k>/lead.fbx`` and ``<k>/follow.fbx``) and each couple GLB (``<k>/couple.fbx``, both
+    dancers; skipping ones already there), and with
     ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``. Raises
     DanceGraphError ``result_missing`` when the published result leaves the store meanwhile."""
     from services.worker import fbx_export
 
     prefix = jobs.result_key(job_id)
     todo = [(name, None) for name in fbx_sources(store, job_id)]
+    todo += [(name, _couple_fbx_writer(store, job_id, name)) for name in couple_glbs(store, job_id)]
     if on_rig is not None:
         todo += [(name, on_rig) for name in fbx_sources(store, job_id, rig=True)]
     for i, (name, writer) in enumerate(todo):
         files = published_result(store, job_id)
-        fbx_name = name[: -len(".bvh")] + ".fbx"
-        if fbx_name in files:
+        target = fbx_name(name)
+        if target in files:
             continue
         tmp = store.temp_dir(f"fbx-{job_id}")
         try:
-            out = tmp / fbx_name.rsplit("/", 1)[1]
-            bvh = _result_file(store, files, name)
+            out = tmp / target.rsplit("/", 1)[1]
+            source = _result_file(store, files, name)
             if writer is None:
-                fbx_export.export(bvh, out, fps=fps)
+                fbx_export.export(source, out, fps=fps)
             else:
-                writer(bvh, out)
+                writer(source, out)
             try:
-                store.publish_more(prefix, {fbx_name: out})
+                store.publish_more(prefix, {target: out})
             except FileNotFoundError as exc:  # the manifest went during the export
                 raise _result_missing() from exc
         finally:
@@ -512,7 +541,8 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(job_id, interval) as beat:
         state.progress(job_id, "fbx", STAGES["fbx"])
-        n = max(1, len(fbx_sources(store, job_id)) + len(fbx_sources(store, job_id, rig=True)))
+        n = len(fbx_sources(store, job_id)) + len(fbx_sources(store, job_id, rig=True))
+        n = max(1, n + len(couple_glbs(store, job_id)))
         span = STAGES["finalize"] - STAGES["fbx"]
 
         def on_file(i: int) -> None:

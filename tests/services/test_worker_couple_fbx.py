@@ -1,7 +1,7 @@
 """FBX for a couple job through the API and the worker's fbx stage (SQLite embedded default,
 ``run_job`` then ``run_fbx`` in this process, Blender): two real salsa partner pairs imported as
 the test dataset; each dancer's ``alternatives/<k>/<partner>.fbx`` read back with ufbx holds
-that dancer's BVH to the millimetre."""
+that dancer's BVH to the millimetre, and ``alternatives/<k>/couple.fbx`` both dancers."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ pytest.importorskip("ufbx")
 
 
 def test_a_couple_job_gets_an_fbx_per_dancer(sqlite_api, salsa_dir: Path, tmp_path: Path):
+    from tests.couple.test_couple_fbx import check_couple_fbx
     from tests.motion.test_fbx import check_fbx_against_fk
     from tests.services.conftest import TEST_DATASET
 
@@ -42,6 +43,7 @@ def test_a_couple_job_gets_an_fbx_per_dancer(sqlite_api, salsa_dir: Path, tmp_pa
     assert waiting.status_code == 409  # not finished before its FBX are written
     assert pipeline.run_fbx(job_id, sqlite_api.settings).status == "succeeded"
     for k in range(2):
+        dancers = {}
         for partner in ("lead", "follow"):
             base = f"/v1/jobs/{job_id}/alternatives/{k}/{partner}"
             got = {}
@@ -50,7 +52,13 @@ def test_a_couple_job_gets_an_fbx_per_dancer(sqlite_api, salsa_dir: Path, tmp_pa
                 assert resp.status_code == 200, resp.text
                 got[fmt] = tmp_path / f"{k}-{partner}.{fmt}"
                 got[fmt].write_bytes(resp.content)
-            worst = check_fbx_against_fk(got["fbx"], read_bvh(got["bvh"]))
+            dancers[partner] = read_bvh(got["bvh"])
+            worst = check_fbx_against_fk(got["fbx"], dancers[partner])
             assert worst < 1e-3
+        both = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/{k}/couple.fbx")
+        assert both.status_code == 200, both.text
+        (tmp_path / f"{k}-couple.fbx").write_bytes(both.content)
+        n = dancers["lead"].n_frames
+        check_couple_fbx(tmp_path / f"{k}-couple.fbx", dancers, [0, n // 3, n // 2, n - 1])
     missing = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/2/follow.fbx")
     assert missing.status_code == 404 and missing.json()["code"] == "result_not_found"

@@ -356,7 +356,7 @@ def download_partner_on_rig(
 @router.get(
     "/{job_id}/alternatives/{k}/{partner}.{fmt}",
     summary="Download one dancer of couple alternative k (spec couple: true) as BVH or FBX "
-    "(output.formats fbx), or both dancers as couple.glb",
+    "(output.formats fbx), or both dancers as couple.glb or couple.fbx",
     response_class=FileResponse,
     responses=_DOWNLOAD_RESPONSES,
 )
@@ -364,7 +364,7 @@ def download_partner(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
     partner: Literal["lead", "follow", "couple"] = Path(
-        ..., description="lead or follow (BVH, FBX), or couple (GLB: both dancers)"
+        ..., description="lead or follow (BVH, FBX), or couple (GLB, FBX: both dancers)"
     ),
     fmt: Literal["bvh", "glb", "fbx"] = Path(..., description="file format"),
     tenant: Tenant = Depends(get_tenant),
