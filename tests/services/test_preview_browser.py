@@ -266,6 +266,7 @@ def test_preview_page_draws_a_couple_in_chromium(api, couple_result):
     assert seen["failed_requests"] == [] and seen["alternatives"] == 2
     assert seen["couple"]["skeletons"] == 2
     tracks = {p: pose_track_file(out / f"alternatives/0/{p}.bvh") for p in ("lead", "follow")}
+    follow_first = tracks["follow"]["positions"]
     for at in seen["couple"]["at"]:
         drawn = {"lead": at["pose"], "follow": at["follow"]}
         for partner, track in tracks.items():
@@ -276,6 +277,11 @@ def test_preview_page_draws_a_couple_in_chromium(api, couple_result):
         hips = np.linalg.norm(np.subtract(at["pose"][:3], at["follow"][:3]))
         assert 0.2 < hips < 1.9
     assert shot.is_file() and shot.stat().st_size > 10_000
+    poses = f"/v1/jobs/{job_id}/preview/poses/0.json"
+    assert api.get(poses + "?partner=follow").json()["positions"][:n] == follow_first[:n]
+    missing = api.get(poses)  # a couple has no solo alternatives/0.bvh
+    assert missing.status_code == 404 and missing.json()["code"] == "result_not_found"
+    assert api.get(poses + "?partner=both").status_code == 422
     # the local server of the same folder names both dancers' tracks; a solo name is a 404
     from fastapi.testclient import TestClient
 
