@@ -19,7 +19,8 @@ frame 0 is t = 0 of the song. The re-timing of a solo render (``output.stops_on_
 Files per alternative k: ``alternatives/<k>/lead.bvh`` and ``alternatives/<k>/follow.bvh``
 (same frame count, frame rate and world frame), and with ``"fbx"`` in ``output.formats``
 ``alternatives/<k>/lead.fbx`` and ``follow.fbx`` (Blender); both dancers in one
-``alternatives/<k>/couple.glb`` (``couple.glb``); ``timeline.json`` as for one dancer
+``alternatives/<k>/couple.glb`` (``couple.glb``; with ``"fbx"`` also ``couple.fbx``);
+``timeline.json`` as for one dancer
 with ``couple: true`` and both partners' takes per bar.
 """
 
@@ -259,7 +260,8 @@ def _write_partners(
     k: int, lead: Motion, follow: Motion, out: Path, formats: list[str], exporter
 ) -> dict[str, str]:
     """Alternative ``k``'s files: ``alternatives/<k>/lead.bvh|follow.bvh`` (and ``.fbx``) and
-    both in ``alternatives/<k>/couple.glb`` (``couple.glb``)."""
+    both in ``alternatives/<k>/couple.glb`` (and with FBX ``couple.fbx``, Blender's import of
+    that GLB)."""
     files: dict[str, str] = {}
     (out / "alternatives" / str(k)).mkdir(parents=True, exist_ok=True)
     for key, dance in (("lead", lead), ("follow", follow)):
@@ -274,6 +276,10 @@ def _write_partners(
             (out / bvh).unlink()
     write_couple_glb({"lead": lead, "follow": follow}, out / f"alternatives/{k}/couple.glb")
     files["glb"] = f"alternatives/{k}/couple.glb"
+    if "fbx" in formats:
+        fbx = f"alternatives/{k}/couple.fbx"
+        exporter.glb_to_fbx(out / files["glb"], out / fbx, fps=lead.fps, frames=lead.n_frames)
+        files["fbx"] = fbx
     return files
 
 

@@ -27,8 +27,9 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 
 from dancegraph.errors import AudioError, DanceGraphError
@@ -320,17 +321,16 @@ def list_result_files(store: ObjectStore, job_id: str) -> list[str]:
 def fbx_sources(store: ObjectStore, job_id: str, *, rig: bool = False) -> list[str]:
     """The BVH files of a job the fbx queue converts: each alternative's ``<k>.bvh`` and a
     couple's ``<k>/lead.bvh``, ``<k>/follow.bvh`` (the library's skeleton), or with ``rig``
-    the solo ``<k>.rig.bvh`` (a couple's dancers on their rigs get no FBX)."""
-    if rig:
-        return jobs.bvh_files(store, job_id, rig=True)
+    the solo ``<k>.rig.bvh`` and a couple's ``<k>/lead.rig.bvh``, ``<k>/follow.rig.bvh``."""
+    tail = ".rig.bvh" if rig else ".bvh"
     couple = [
         name
         for name in jobs.result_files(store, job_id)
         if name.startswith("alternatives/")
-        and name.rsplit("/", 1)[-1] in ("lead.bvh", "follow.bvh")
+        and name.rsplit("/", 1)[-1] in (f"lead{tail}", f"follow{tail}")
         and name.split("/")[1].isdigit()
     ]
-    return jobs.bvh_files(store, job_id) + sorted(couple)
+    return jobs.bvh_files(store, job_id, rig=rig) + sorted(couple)
 
 
 def couple_glbs(store: ObjectStore, job_id: str) -> list[str]:
@@ -370,16 +370,17 @@ def _couple_fbx_writer(store: ObjectStore, job_id: str, glb_name: str):
 def export_fbx(store: ObjectStore, job_id: str, fps: float, on_file=None, on_rig=None) -> list[str]:
     """Add an FBX beside each ``fbx_sources`` BVH (``alternatives/<k>.fbx``, a couple's
     ``<k>/lead.fbx`` and ``<k>/follow.fbx``) and each couple GLB (``<k>/couple.fbx``, both
-    dancers; skipping ones already there), and with
-    ``on_rig(bvh, fbx)`` each ``<k>.rig.fbx`` beside its ``<k>.rig.bvh``. Raises
+    dancers; skipping ones already there), and with ``on_rig(name, bvh, fbx)`` (``name``: the
+    result's ``<k>.rig.bvh`` or ``<k>/<partner>.rig.bvh``) each ``.rig.fbx`` beside it. Raises
     DanceGraphError ``result_missing`` when the published result leaves the store meanwhile."""
     from services.worker import fbx_export
 
     prefix = jobs.result_key(job_id)
+    todo: list[tuple[str, Callable[[Path, Path], object] | None]]
     todo = [(name, None) for name in fbx_sources(store, job_id)]
     todo += [(name, _couple_fbx_writer(store, job_id, name)) for name in couple_glbs(store, job_id)]
     if on_rig is not None:
-        todo += [(name, on_rig) for name in fbx_sources(store, job_id, rig=True)]
+        todo += [(name, partial(on_rig, name)) for name in fbx_sources(store, job_id, rig=True)]
     for i, (name, writer) in enumerate(todo):
         files = published_result(store, job_id)
         target = fbx_name(name)
@@ -550,12 +551,12 @@ def run_fbx(job_id: str, settings: Settings | None = None) -> RunOutcome:
             state.progress(job_id, "fbx", STAGES["fbx"] + span * (i + 1) / n)
 
         spec = parse_spec(job.spec)
-        on_rig = None
-        rig_id = spec.output.rig
-        if rig_id is not None:
+        rigs = {"lead": spec.output.rig, "follow": spec.output.follow_rig}
+        rig_ids = {partner: rig_id for partner, rig_id in rigs.items() if rig_id is not None}
 
-            def on_rig(bvh: Path, fbx: Path) -> None:
-                write_rig_fbx(store, settings.database_url, job.tenant_id, rig_id, bvh, fbx)
+        def on_rig(name: str, bvh: Path, fbx: Path) -> None:  # the follow's rig for its files
+            rig_id = rig_ids["follow" if name.endswith("/follow.rig.bvh") else "lead"]
+            write_rig_fbx(store, settings.database_url, job.tenant_id, rig_id, bvh, fbx)
 
         files = export_fbx(store, job_id, float(spec.output.fps), on_file, on_rig)
         state.progress(job_id, "finalize", STAGES["finalize"])

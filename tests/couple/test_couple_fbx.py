@@ -17,6 +17,8 @@ from dancegraph.couple.glb import write_couple_glb
 from dancegraph.motion.bvh import read_bvh
 from dancegraph.motion.fbx import FbxExporter, fbx_available
 from dancegraph.motion.fk import forward_kinematics
+from tests.couple.test_couple import couple  # noqa: F401  (the module fixture: a couple graph)
+from tests.demo import demo_song
 
 pytest.importorskip("ufbx")
 pytestmark = pytest.mark.skipif(
@@ -95,6 +97,23 @@ def check_couple_fbx(fbx: Path, dancers: dict, frames: list[int]) -> None:
     # the two dancers stand apart as captured (hips 0.2-1.9 m: the library's p1-p99 band)
     mid = frames[len(frames) // 2]
     assert 0.2 < np.linalg.norm(drawn["lead", mid][0] - drawn["follow", mid][0]) < 1.9
+
+
+def test_synthesize_couple_writes_couple_fbx(couple, tmp_path: Path):  # noqa: F811
+    """``dancegraph synthesize --couple`` with ``fbx`` in the formats: ``couple.fbx`` holds the
+    alternative's ``lead.bvh`` and ``follow.bvh`` (one alternative of the generated song)."""
+    from dancegraph.cli import main
+
+    wav, _ = demo_song(tmp_path)
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"output": {"formats": ["bvh", "fbx"]}, "alternatives": 1}))
+    argv = ["synthesize", str(wav), "--dataset", "salsa6", "--couple", "--out", str(tmp_path)]
+    assert main([*argv, "--spec", str(spec), "--store", str(couple[1].root)]) == 0
+    files = json.loads((tmp_path / "timeline.json").read_text())["alternatives"][0]["files"]
+    assert files["fbx"] == "alternatives/0/couple.fbx"
+    dancers = {p: read_bvh(tmp_path / f"alternatives/0/{p}.bvh") for p in ("lead", "follow")}
+    n = dancers["lead"].n_frames
+    check_couple_fbx(tmp_path / files["fbx"], dancers, [0, n // 2, n - 1])
 
 
 def test_glb_to_fbx_refuses_a_missing_file(tmp_path: Path):

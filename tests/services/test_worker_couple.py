@@ -27,17 +27,31 @@ MANIFEST = {
 }
 
 
-def test_a_couple_job_returns_both_dancers(sqlite_api, salsa_dir: Path, tmp_path: Path):
+def couple_library(api, salsa_dir: Path) -> None:
+    """Import the two salsa pairs (``MANIFEST``) as the test dataset of ``api``'s store and
+    build its solo and couple graphs."""
     from tests.services.conftest import TEST_DATASET
 
-    store = sqlite_api.app.state.ctx.store
+    store = api.app.state.ctx.store
     import_dataset(salsa_dir, TEST_DATASET, store, MANIFEST)
     build_graph(load_dataset(store, TEST_DATASET), store)
     build_couple_graph(store, TEST_DATASET)
-    wav, song = demo_song(tmp_path)
-    rig_file = make_rigs(tmp_path / "rigs", blender=False) / "cmu_cm.bvh"
+
+
+def upload_rig(api, folder: Path) -> tuple[Path, str]:
+    """The generated centimetre rig ``cmu_cm.bvh`` written into ``folder`` and registered
+    through ``POST /v1/rigs``; its file and id."""
+    rig_file = make_rigs(folder, blender=False) / "cmu_cm.bvh"
     files = [("rig", (rig_file.name, rig_file.read_bytes(), "application/octet-stream"))]
-    rig = sqlite_api.post("/v1/rigs", files=files).json()["id"]
+    return rig_file, api.post("/v1/rigs", files=files).json()["id"]
+
+
+def test_a_couple_job_returns_both_dancers(sqlite_api, salsa_dir: Path, tmp_path: Path):
+    from tests.services.conftest import TEST_DATASET
+
+    couple_library(sqlite_api, salsa_dir)
+    wav, song = demo_song(tmp_path)
+    _, rig = upload_rig(sqlite_api, tmp_path / "rigs")
     unknown = {"dataset": TEST_DATASET, "couple": True, "output": {"follow_rig": "nope"}}
     refused = sqlite_api.submit(wav.read_bytes(), unknown)
     assert refused.status_code == 422 and refused.json()["code"] == "unknown_rig"

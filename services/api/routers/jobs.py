@@ -332,7 +332,7 @@ def download_alternative(
 @router.get(
     "/{job_id}/alternatives/{k}/{partner}.rig.{fmt}",
     summary="Download one dancer of couple alternative k on its rig (output.rig for the lead, "
-    "output.follow_rig for the follow) as BVH or GLB",
+    "output.follow_rig for the follow) as BVH, GLB or (output.formats fbx) FBX",
     response_class=FileResponse,
     responses=_DOWNLOAD_RESPONSES,
 )
@@ -340,7 +340,7 @@ def download_partner_on_rig(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
     partner: Literal["lead", "follow"] = Path(..., description="which dancer of the couple"),
-    fmt: Literal["bvh", "glb"] = Path(..., description="file format"),
+    fmt: Literal["bvh", "glb", "fbx"] = Path(..., description="file format"),
     tenant: Tenant = Depends(get_tenant),
     db: Session = Depends(get_db),
     store: ObjectStore = Depends(get_store),
