@@ -12,6 +12,7 @@ file's placement check.
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 import tempfile
@@ -31,17 +32,23 @@ TARGETS_S = {".fbx": 3.0, ".usd": 1.0}
 RIG = "prerot.fbx"
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--rig", type=Path, help="a character file of your own (FBX/GLB) instead of prerot.fbx"
+    )
+    args = ap.parse_args(argv)
     if not (shared_dir() / "datasets").is_dir() or not fbx_available():
         print("shared datasets or Blender not found: skipped")
         return 0
     dance = three_minute_motion()
     with tempfile.TemporaryDirectory() as tmp, FbxExporter() as exporter:
-        rigs = make_rigs(Path(tmp) / "rigs")
-        rig = load_rig(rigs / RIG)
+        rig_file = args.rig.resolve() if args.rig else make_rigs(Path(tmp) / "rigs") / RIG
+        rig = load_rig(rig_file)
         motion, report = retarget(dance, rig)
+        n_vertices = rig.mesh.n_vertices if rig.mesh is not None else 0
         print(
-            f"{RIG}: {rig.skeleton.n_joints} joints, {rig.mesh.n_vertices} skinned vertices, "
+            f"{rig_file.name}: {rig.skeleton.n_joints} joints, {n_vertices} skinned vertices, "
             f"{rig.height():.3f} m; dance {motion.n_frames} frames at {motion.fps:g} fps"
         )
         print("| file | median s (3 runs, warm) | runs s | target s | height ratio | upright |")
@@ -49,11 +56,11 @@ def main() -> int:
         missed = []
         for ext in (".bvh", ".glb", ".usd", ".fbx"):
             out = Path(tmp) / f"dance{ext}"
-            write_on_rig(motion, rig, rigs / RIG, out, exporter=exporter)  # warm-up
+            write_on_rig(motion, rig, rig_file, out, exporter=exporter)  # warm-up
             runs, summary = [], {}
             for _ in range(3):
                 t0 = time.perf_counter()
-                summary = write_on_rig(motion, rig, rigs / RIG, out, exporter=exporter)
+                summary = write_on_rig(motion, rig, rig_file, out, exporter=exporter)
                 runs.append(time.perf_counter() - t0)
             median = statistics.median(runs)
             target = TARGETS_S.get(ext)

@@ -162,15 +162,19 @@ def _work(
         with session_scope() as session:
             return libraries.beat(session, row_id, worker, stage, percent)
 
+    def stage(name: str) -> None:  # a new phase is shown at once, not at the next heartbeat
+        _stage(progress, name, libraries.STAGES[name])
+        beat()
+
     interval = state.heartbeat_interval(settings.job_timeout_s)
     with state.Heartbeat(str(row_id), interval, beat) as hb:
-        _stage(progress, "fetch", libraries.STAGES["fetch"])
+        stage("fetch")
         t0 = time.perf_counter()
         src, archive = _fetch(store, upload, scratch)
         t1 = time.perf_counter()
         report = _import(settings, store, graph_name, src, archive, upload, progress)
         hb.check()
-        _stage(progress, "build", libraries.STAGES["build"])
+        stage("build")
         t2 = time.perf_counter()
         built = _build(store, graph_name)
         hb.check()

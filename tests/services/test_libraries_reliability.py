@@ -131,7 +131,7 @@ def test_worker_killed_mid_build_resumes_and_the_previous_version_serves(cluster
 
     def mid_build():
         r = row(cluster, v2)
-        return r.status == "running" and r.stage in ("import", "build")
+        return r.status == "running" and r.stage in ("fetch", "import", "build")
 
     wait_for(mid_build, 120, "the import to be under way", interval_s=0.05)
     cluster.kill("w1")  # SIGKILL to the worker's process group
