@@ -72,6 +72,7 @@ __all__ = [
     "network_confidence",
     "phase_viterbi",
     "restart_costs",
+    "section_phases",
 ]
 
 
@@ -273,6 +274,69 @@ def phase_viterbi(
     return path + 1
 
 
+def section_phases(
+    evidence: np.ndarray,
+    path: np.ndarray,
+    meter: int,
+    restarts: np.ndarray,
+    min_gain_per_bar: float,
+) -> np.ndarray:
+    """(K,) positions in the bar (1 = downbeat): the bar-pointer ``path`` (K,) of
+    :func:`phase_viterbi` with the jumps between its sections (runs of beats in one bar phase)
+    judged by each section's own downbeat ``evidence`` (K,) in ``meter``. A jump stands where
+    the sections on both sides prefer their own phase to the other's by at least
+    ``min_gain_per_bar`` a bar on average; the weakest jump below that goes first, its two
+    sections becoming one in the phase with more evidence over both, and the rest are judged
+    again. A jump next to a grid glitch (``restarts`` (K,) above its least value, see
+    :func:`restart_costs`) always stands: there the count of beats itself moved.
+
+    Why: the path buys a jump where the evidence summed over the section after it beats a
+    fixed cost, so whether a long section leaning weakly to another phase gets its own depends
+    on how much of it was analysed (an excerpt of a song sees less of it); a mean gain a bar is
+    the section's own (docs/music.md, "One bar phase through a song")."""
+    e = np.asarray(evidence, dtype=np.float64)
+    m, n = int(meter), len(e)
+    pos = np.asarray(path, dtype=np.int64)
+    if n == 0:
+        return pos.copy()
+    fixed = np.asarray(restarts, dtype=np.float64) > float(np.min(restarts))
+    # a section: the beats between two jumps of the path, in one bar phase: [first, end, r],
+    # its downbeats on the beats whose index is r mod meter
+    starts = [0] + [i for i in range(1, n) if pos[i] != pos[i - 1] % m + 1]
+    sections = [
+        [a, b, int((a - pos[a] + 1) % m)] for a, b in zip(starts, [*starts[1:], n], strict=True)
+    ]
+
+    def score(a: int, b: int, r: int) -> float:
+        return float(e[a:b][(np.arange(a, b) - r) % m == 0].sum())
+
+    while True:
+        weakest, at = min_gain_per_bar, -1
+        for k in range(1, len(sections)):
+            (a, mid, rx), (_, b, ry) = sections[k - 1], sections[k]
+            if fixed[mid] or rx == ry:
+                continue
+            gx = (score(a, mid, rx) - score(a, mid, ry)) * m / (mid - a)
+            gy = (score(mid, b, ry) - score(mid, b, rx)) * m / (b - mid)
+            if min(gx, gy) < weakest:
+                weakest, at = min(gx, gy), k
+        if at < 0:
+            break
+        (a, _, rx), (_, b, ry) = sections[at - 1], sections[at]
+        r = rx if score(a, b, rx) >= score(a, b, ry) else ry
+        sections[at - 1 : at + 1] = [[a, b, r]]
+    return _positions(sections, m, n)
+
+
+def _positions(sections: list[list[int]], m: int, n: int) -> np.ndarray:
+    """(n,) positions in bars of ``m`` of the beats of ``sections`` ([first, end, r] each,
+    the downbeats on the beats whose index is r mod ``m``)."""
+    out = np.empty(n, dtype=np.int64)
+    for a, b, r in sections:
+        out[a:b] = (np.arange(a, b) - r) % m + 1
+    return out
+
+
 def grid_glitches(frames: np.ndarray, p: GroupParams = GroupParams()) -> np.ndarray:
     """(K,) bool: beats within ``glitch_reach`` beats of an interval that differs by more
     than ``glitch_dev`` from the running median interval (``glitch_context`` beats)."""
@@ -400,7 +464,8 @@ def group_beats(
     # a network sure of its downbeats keeps them: the harmony and the backbeat do not outvote it
     own = downbeat_evidence(act, frames, chroma, tracked, network_only=True, p=p)
     if network_confidence(act, frames, own, grouping, restarts, tracked) >= p.net_confident:
-        new = phase_viterbi(own, grouping, restarts)
+        e, new = own, phase_viterbi(own, grouping, restarts)
+    new = section_phases(e, new, grouping, restarts, p.min_section_gain)
     if meter == 2:
         new = (new - 1) % 2 + 1
     notes = _grouping_notes(

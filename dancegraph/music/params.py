@@ -295,6 +295,11 @@ class GroupParams:
     log_restart: float = -10.0
     #: log probability of a restart next to a glitch of the grid (the count is least sure there)
     log_restart_glitch: float = -2.0
+    #: mean downbeat evidence a bar (z-units) by which the sections on both sides of a bar
+    #: restart must each prefer their own phase for it to stand
+    #: (:func:`~dancegraph.music.bargroup.section_phases`): on full-length songs the restarts
+    #: that stand show 1.8-2.8 a bar, the ones it drops 0.4-1.1 (docs/music.md)
+    min_section_gain: float = 1.5
     #: a glitch: an interval off the running median interval by this share ...
     glitch_dev: float = 0.15
     #: ... over this many intervals

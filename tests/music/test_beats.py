@@ -790,6 +790,30 @@ def test_phase_viterbi_follows_a_section_change_not_a_stray_bar() -> None:
     assert set(np.unique(pos)) == {1, 2, 3, 4}
 
 
+def test_section_phases_keep_a_restart_by_its_evidence_a_bar_not_its_length() -> None:
+    """A restart into a section stands only where the section's own evidence prefers its
+    phase by ``min_section_gain`` a bar on average: a long section leaning weakly to another
+    phase (0.6 a bar over 24 bars: 14.4 nats, enough for the path's fixed restart cost) keeps
+    the phase the bars before it carry, as an excerpt holding only part of it would; a short
+    section clearly in another phase (3 a bar over 6 bars) keeps its restart; and so does a
+    restart next to a grid glitch, however weak."""
+    p = GroupParams()
+    for lean, bars, kept in ((0.6, 24, False), (3.0, 6, True)):
+        n = 80 + 4 * bars
+        e = np.zeros(n)
+        e[0:80:4] += 2.0  # 20 bars, downbeats on beat 0 mod 4
+        e[82:n:4] += lean  # then the section to the end: downbeats two beats later
+        path = bargroup.phase_viterbi(e, 4, p.log_restart)
+        assert path[82] == 1  # the path restarts for both: the summed gain beats its cost
+        costs = np.full(n, p.log_restart)
+        pos = bargroup.section_phases(e, path, 4, costs, p.min_section_gain)
+        assert np.all(pos[0:80:4] == 1)
+        assert bool(pos[82] == 1) is kept and bool(pos[84] == 1) is not kept
+        glitchy = costs.copy()
+        glitchy[80:84] = p.log_restart_glitch
+        assert bargroup.section_phases(e, path, 4, glitchy, p.min_section_gain)[82] == 1
+
+
 def test_swung_off_beat_grid_is_moved_onto_the_beat() -> None:
     """Onsets on the beats and on the swung off-beats (0.62): a grid on the off-beats sees the
     next onset at 0.38 of its beat, which swing never does, and is moved there; a grid on the
@@ -1014,6 +1038,22 @@ def test_vibe_ace_against_beatnet_reference(cc_music_dir: Path, shared: Path) ->
     one = track_beats(y, sr, params=BEATNET_1_1_3)
     np.testing.assert_allclose(one.beats, ref[:, 0], atol=1e-6)
     np.testing.assert_array_equal(one.beat_positions, ref[:, 1].astype(int))
+
+
+def test_an_excerpt_of_a_real_song_keeps_its_beats_and_bars(cc_music_dir: Path) -> None:
+    """An upload of part of a song gets the beats and bars the whole song gets there: a CC
+    song analysed whole and from a third and from half of its length, the excerpt's beats and
+    downbeats against the whole song's from a second after the cut (``bench_real_music
+    --full`` on more songs: docs/music.md)."""
+    y, sr = load_audio(cc_music_dir / "Karissa_Hobbs_-_Lets_Go_Fishin.hq.ogg")
+    whole = track_beats(y, sr)
+    for share in (1 / 3, 1 / 2):
+        cut = int(round(share * len(y)))
+        part = track_beats(y[cut:], sr)
+        after = cut / sr + 1.0
+        for mine, theirs in ((part.beats, whole.beats), (part.downbeats, whole.downbeats)):
+            moved = mine + cut / sr
+            assert beat_f_measure(theirs[theirs >= after], moved[moved >= after]) >= 0.95
 
 
 # --- the decoder -----------------------------------------------------------------------------
