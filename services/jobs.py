@@ -29,6 +29,7 @@ from sqlalchemy.orm import Session
 
 from dancegraph.errors import NotFoundError
 from dancegraph.store import ObjectStore, check_key
+from services.common.problems import bounded
 from services.common.uploads import StoredAudio
 from services.models import (
     CANCELLED,
@@ -289,6 +290,8 @@ def set_status(
     error_field: str | None = None,
 ) -> bool:
     """Move a live job to ``status`` (with its details); False when the job is already final.
+    A failure's message and field are stored bounded (:func:`~services.common.problems.bounded`:
+    a worker error may quote what the client sent).
 
     Reaching a final state stamps ``finished_at`` and, for a job with a callback URL, marks the
     webhook ``pending`` for delivery.
@@ -298,9 +301,9 @@ def set_status(
         ("stage", stage),
         ("analysis_summary", analysis_summary),
         ("result", result),
-        ("error_code", error_code),
-        ("error_message", error_message),
-        ("error_field", error_field),
+        ("error_code", error_code and error_code[:64]),
+        ("error_message", error_message and bounded(error_message)),
+        ("error_field", error_field and bounded(error_field, 200)),
     ):
         if value is not None:
             values[name] = value

@@ -34,7 +34,7 @@ from sqlalchemy.orm import Session
 
 from dancegraph.errors import DanceGraphError, NotFoundError
 from dancegraph.store import ObjectStore
-from services.common.problems import ApiError
+from services.common.problems import ApiError, bounded
 from services.common.uploads import FilePart
 from services.config import Settings
 from services.models import FAILED, FINAL_STATUSES, QUEUED, RUNNING, SUCCEEDED, Dataset, Job, utcnow
@@ -480,13 +480,14 @@ def fail(
     field: str | None = None,
     report: dict | None = None,
 ) -> bool:
-    """A named failure of a version's import (nothing of it is published)."""
+    """A named failure of a version's import (nothing of it is published); its message and
+    field are stored bounded (:func:`~services.common.problems.bounded`)."""
     values: dict[str, Any] = {
         "status": FAILED,
         "stage": FAILED,
         "error_code": code[:64],
-        "error_message": message,
-        "error_field": (field or None) and field[:200],
+        "error_message": bounded(message),
+        "error_field": (field or None) and bounded(field, 200),
         "finished_at": utcnow(),
     }
     if report is not None:

@@ -279,3 +279,16 @@ def test_reaper_sweeps_every_kind_of_leftover(embedded):
     assert report.orphans_removed == 2  # the unowned song and the unpublished result version
     assert not store.exists(orphan_key) and store.exists(used_key)
     assert list(store.list("jobs")) == []
+
+
+def test_a_failure_quoting_a_huge_input_is_stored_bounded(embedded):
+    """A worker error that quotes what the client sent (a 1 MB name) is stored and served a
+    kilobyte long, not a megabyte; the code and field are cut too."""
+    job_id = _job(_tenant())
+    huge = "x" * 1_000_000
+    with db.session_scope() as session:
+        assert jobs.fail_job(session, job_id, "bad_" + huge, f"no joint named {huge}", huge)
+    with db.session_scope() as session:
+        row = session.get(Job, job_id)
+        assert row.error_message.startswith("no joint named x") and len(row.error_message) <= 1024
+        assert len(row.error_code) == 64 and len(row.error_field) <= 200
