@@ -111,122 +111,130 @@ class _Space:
         if p.meter_change <= 0:
             self.log_init += np.log(len(self.meters))  # separate HMMs: exactly madmom's numbers
         self.k = k
+        # slots: one per (meter, beat in the bar), in meter order
+        self.slot_meter = np.repeat(np.arange(len(self.meters)), self.meters)
+        self.slot_beat = np.concatenate([np.arange(nb) for nb in self.meters])
+        self.slot_base = self.moff[self.slot_meter] + self.slot_beat * s_beat
+        last = self.slot_off[self.slot_meter] + self.meters[self.slot_meter] - 1
+        self.slot_prev = np.where(self.slot_beat > 0, np.arange(len(self.slot_beat)) - 1, last)
+        self.slot_first = self.slot_beat == 0
+        self.st_slot = self.slot_off[self.st_meter] + self.st_beat
 
 
-def _viterbi_py(
-    obs, pointer, st_meter, st_beat, st_k, st_p, intervals, ioff, moff, meters, slot_off,
-    s_beat, log_tempo, log_init, log_stay, log_jump_same, log_jump_other,
+def _forward_py(
+    obs, pointer, intervals, ioff, slot_base, slot_prev, slot_meter, slot_first, log_tempo, v,
+    log_stay, log_jump_same, log_jump_other,
 ):  # fmt: skip
-    """Viterbi over the joint bar-pointer space (numba-compiled). Returns (path, log_prob)."""
-    n_frames = obs.shape[0]
-    n_states = pointer.shape[0]
-    n_int = intervals.shape[0]
-    n_met = meters.shape[0]
-    n_slots = 0
-    for m in range(n_met):
-        n_slots += meters[m]
-    # slot (meter, beat in bar) -> meter and beat
-    slot_meter = np.empty(n_slots, np.int64)
-    slot_beat = np.empty(n_slots, np.int64)
-    for m in range(n_met):
-        for b in range(meters[m]):
-            slot_meter[slot_off[m] + b] = m
-            slot_beat[slot_off[m] + b] = b
-    v = np.empty(n_states)
-    for s in range(n_states):
-        v[s] = log_init[st_meter[s]]
+    """The Viterbi forward pass over the joint bar-pointer space (numba-compiled): ``v`` (S,)
+    holds the initial log probabilities and is left holding the last frame's. A slot is one
+    (meter, beat in the bar); ``slot_base`` its first state, ``slot_prev`` the slot before it in
+    the bar, ``slot_first`` whether it is a downbeat. Returns the back-pointers of the first state
+    of each beat, (T, slots x tempi) int16 (every other state has one predecessor)."""
+    n_frames, n_int, n_slots = obs.shape[0], intervals.shape[0], slot_base.shape[0]
     best_in = np.empty((n_slots, n_int))
     arg_in = np.empty((n_slots, n_int), np.int64)
     bp = np.empty((n_frames, n_slots * n_int), np.int16)
+    jumps = log_jump_same > -np.inf or log_jump_other > -np.inf
     for t in range(n_frames):
         # best way into each tempo from the last state of each beat (beat boundary)
-        for m in range(n_met):
-            for b in range(meters[m]):
-                slot = slot_off[m] + b
-                base = moff[m] + b * s_beat
-                for k in range(n_int):
-                    best = -np.inf
-                    arg = 0
-                    for kp in range(n_int):
-                        lt = log_tempo[kp, k]
-                        if lt == -np.inf:
+        for slot in range(n_slots):
+            base = slot_base[slot]
+            for k in range(n_int):
+                best = -np.inf
+                arg = 0
+                for kp in range(n_int):
+                    lt = log_tempo[kp, k]
+                    if lt == -np.inf:
+                        continue
+                    val = v[base + ioff[kp] + intervals[kp] - 1] + lt
+                    if val > best:
+                        best = val
+                        arg = kp
+                best_in[slot, k] = best
+                arg_in[slot, k] = slot * n_int + arg
+        # advance the position inside each beat (in place, from the back)
+        for slot in range(n_slots):
+            base = slot_base[slot]
+            for k in range(n_int):
+                s0 = base + ioff[k]
+                for q in range(intervals[k] - 1, 0, -1):
+                    v[s0 + q] = v[s0 + q - 1] + obs[t, pointer[s0 + q]]
+        # first state of each beat: the previous beat of the bar, or a bar restart
+        for slot in range(n_slots):
+            prev = slot_prev[slot]
+            for k in range(n_int):
+                best = best_in[prev, k] + log_stay
+                arg = arg_in[prev, k]
+                if slot_first[slot] and jumps:
+                    for other in range(n_slots):
+                        if other == prev:
                             continue
-                        val = v[base + ioff[kp] + intervals[kp] - 1] + lt
+                        same = slot_meter[other] == slot_meter[slot]
+                        val = best_in[other, k] + (log_jump_same if same else log_jump_other)
                         if val > best:
                             best = val
-                            arg = kp
-                    best_in[slot, k] = best
-                    arg_in[slot, k] = slot * n_int + arg
-        # advance the position inside each beat (in place, from the back)
-        for m in range(n_met):
-            for b in range(meters[m]):
-                base = moff[m] + b * s_beat
-                for k in range(n_int):
-                    s0 = base + ioff[k]
-                    for q in range(intervals[k] - 1, 0, -1):
-                        v[s0 + q] = v[s0 + q - 1] + obs[t, pointer[s0 + q]]
-        # first state of each beat: the previous beat of the bar, or a bar restart
-        for m in range(n_met):
-            nb = meters[m]
-            for b in range(nb):
-                slot = slot_off[m] + b
-                prev_slot = slot_off[m] + (b - 1 if b > 0 else nb - 1)
-                base = moff[m] + b * s_beat
-                for k in range(n_int):
-                    best = best_in[prev_slot, k] + log_stay
-                    arg = arg_in[prev_slot, k]
-                    if b == 0 and (log_jump_same > -np.inf or log_jump_other > -np.inf):
-                        for other in range(n_slots):
-                            if other == prev_slot:
-                                continue
-                            lj = log_jump_same if slot_meter[other] == m else log_jump_other
-                            val = best_in[other, k] + lj
-                            if val > best:
-                                best = val
-                                arg = arg_in[other, k]
-                    s0 = base + ioff[k]
-                    v[s0] = best + obs[t, pointer[s0]]
-                    bp[t, slot * n_int + k] = arg
+                            arg = arg_in[other, k]
+                s0 = slot_base[slot] + ioff[k]
+                v[s0] = best + obs[t, pointer[s0]]
+                bp[t, slot * n_int + k] = arg
+    return bp
+
+
+def _backtrack_py(v, bp, st_p, st_slot, st_k, slot_base, intervals, ioff):
+    """The most likely state path (T,) and its log probability from the last frame's ``v``
+    (S,) and the forward pass's back-pointers ``bp`` (numba-compiled)."""
+    n_int = intervals.shape[0]
     state = 0
-    for s in range(n_states):
+    for s in range(v.shape[0]):
         if v[s] > v[state]:
             state = s
     log_prob = v[state]
-    path = np.empty(n_frames, np.int64)
-    for t in range(n_frames - 1, -1, -1):
+    path = np.empty(bp.shape[0], np.int64)
+    for t in range(bp.shape[0] - 1, -1, -1):
         path[t] = state
         if st_p[state] > 0:
             state = state - 1
         else:
-            src = bp[t, (slot_off[st_meter[state]] + st_beat[state]) * n_int + st_k[state]]
-            sl = src // n_int
-            kp = src % n_int
-            state = moff[slot_meter[sl]] + slot_beat[sl] * s_beat + ioff[kp] + intervals[kp] - 1
+            src = bp[t, st_slot[state] * n_int + st_k[state]]
+            sl, kp = src // n_int, src % n_int
+            state = slot_base[sl] + ioff[kp] + intervals[kp] - 1
     return path, log_prob
 
 
-_KERNEL = None
+_KERNELS = None
 _LOCK = threading.Lock()
 
 
-def _kernel():
-    """The numba-compiled Viterbi kernel, compiled (or loaded from the disk cache) once, under
-    the kernel cache's lock (``jit.ensure``)."""
-    global _KERNEL
+def _kernels():
+    """The numba-compiled forward pass and backtrack, compiled (or loaded from the disk cache)
+    once, under the kernel cache's lock (``jit.ensure``)."""
+    global _KERNELS
     with _LOCK:
-        if _KERNEL is None:
+        if _KERNELS is None:
             import numba
 
-            jit.configure_cache()  # decorated after this, the kernel caches in the project's folder
-            _KERNEL = numba.njit(cache=True, nogil=True)(_viterbi_py)
+            jit.configure_cache()  # decorated after this, the kernels cache in the project's folder
+            compile_ = numba.njit(cache=True, nogil=True)
+            _KERNELS = (compile_(_forward_py), compile_(_backtrack_py))
     jit.ensure("barpointer")
-    return _KERNEL
+    return _KERNELS
 
 
 @lru_cache(maxsize=8)
 def _space(p: BarPointerParams) -> _Space:
     """The state space of ``p``, built once per parameters (a few MB each)."""
     return _Space(p)
+
+
+def _observations(act: np.ndarray, lam: float) -> np.ndarray:
+    """(T, 3) log observation probabilities of (T, 2) activations: outside any beat range
+    (``(1 - beat - downbeat) / (lam - 1)``), in a beat's range (beat), in a downbeat's (downbeat)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        obs = np.empty((len(act), 3))
+        obs[:, 0] = np.log(np.maximum(1.0 - act.sum(axis=1), 1e-12) / (lam - 1.0))
+        obs[:, 1] = np.log(np.maximum(act[:, 0], 1e-12))
+        obs[:, 2] = np.log(np.maximum(act[:, 1], 1e-12))
+    return obs
 
 
 def decode(activations: np.ndarray, params: BarPointerParams = DEFAULT) -> DecodedBeats:
@@ -250,12 +258,7 @@ def decode(activations: np.ndarray, params: BarPointerParams = DEFAULT) -> Decod
     if len(act) == 0 or not act.any():
         return empty
     sp = _space(params)
-    lam = params.observation_lambda
-    with np.errstate(divide="ignore", invalid="ignore"):
-        obs = np.empty((len(act), 3))
-        obs[:, 0] = np.log(np.maximum(1.0 - act.sum(axis=1), 1e-12) / (lam - 1.0))
-        obs[:, 1] = np.log(np.maximum(act[:, 0], 1e-12))
-        obs[:, 2] = np.log(np.maximum(act[:, 1], 1e-12))
+    obs = _observations(act, params.observation_lambda)
     # a bar restart: to the downbeat from any other beat of the same meter (nb - 1 ways), or
     # to another meter's downbeat from any beat
     pc, mc = params.phase_change, params.meter_change
@@ -264,10 +267,15 @@ def decode(activations: np.ndarray, params: BarPointerParams = DEFAULT) -> Decod
     n_other = int(sp.meters.sum()) - nb
     log_same = float(np.log(pc / (nb - 1))) if pc > 0 and nb > 1 else -np.inf
     log_other = float(np.log(mc / n_other)) if mc > 0 and n_other > 0 else -np.inf
-    path, log_prob = _kernel()(
-        obs, sp.pointer, sp.st_meter, sp.st_beat, sp.st_k, sp.st_p, sp.intervals, sp.ioff,
-        sp.moff, sp.meters, sp.slot_off, sp.s_beat, sp.log_tempo, sp.log_init, log_stay, log_same, log_other,
+    forward, backtrack = _kernels()
+    v = sp.log_init[sp.st_meter]
+    bp = forward(
+        obs, sp.pointer, sp.intervals, sp.ioff, sp.slot_base, sp.slot_prev, sp.slot_meter,
+        sp.slot_first, sp.log_tempo, v, log_stay, log_same, log_other,
     )  # fmt: skip
+    path, log_prob = backtrack(
+        v, bp, sp.st_p, sp.st_slot, sp.st_k, sp.slot_base, sp.intervals, sp.ioff
+    )
     if not np.isfinite(log_prob):
         return empty
     # madmom's correction: one beat per beat range, on the activation peak inside it
