@@ -171,6 +171,16 @@ class RigOut(BaseModel):
     mapping: dict[str, str] = Field(..., description="the mapping sent with the upload")
     height_m: float
     mesh: dict[str, int] | None = Field(None, description="the skinned mesh: vertices, triangles")
+    up_axis: str | None = Field(
+        None, description="the file's axis the character stands along: +Y (upright) or e.g. +Z"
+    )
+    unit_scale: float | None = Field(
+        None, description="metres per unit of the file (0.01: centimetres); height_m is in metres"
+    )
+    ancestors: list[str] | None = Field(
+        None,
+        description="nodes above the skeleton's root, outermost first (kept in written files)",
+    )
 
 
 class RigList(BaseModel):

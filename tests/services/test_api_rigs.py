@@ -30,6 +30,7 @@ def test_rig_lifecycle(sqlite_api, rig_files):
     assert rig["format"] == "bvh" and rig["roles"]["left_knee"] == "lShin"
     assert rig["how"]["head"] == "user" and rig["mapping"] == {"head": "neck"}
     assert rig["how"]["hips"] == "preset:cmu" and 1.2 < rig["height_m"] < 2.0
+    assert rig["up_axis"] == "+Y" and rig["unit_scale"] == 0.01 and rig["ancestors"] == []
     listed = sqlite_api.get("/v1/rigs").json()["items"]
     assert [r["id"] for r in listed] == [rig["id"]]
     assert sqlite_api.get(f"/v1/rigs/{rig['id']}").json()["roles"] == rig["roles"]
@@ -40,6 +41,18 @@ def test_rig_lifecycle(sqlite_api, rig_files):
     assert sqlite_api.delete(f"/v1/rigs/{rig['id']}").status_code == 204
     gone = sqlite_api.get(f"/v1/rigs/{rig['id']}")
     assert gone.status_code == 404 and gone.json()["code"] == "unknown_rig"
+
+
+def test_a_rig_under_parent_nodes_reports_them_and_its_world_size(sqlite_api, rig_files):
+    """A GLB armature in centimetres, Z up, under a turned and scaled ``Root`` node: the API
+    names the nodes above the skeleton and gives its world size in metres, upright."""
+    if not fbx_available():
+        pytest.skip("Blender not installed (the parented GLB is made by it)")
+    resp = _upload(sqlite_api, rig_files / "parented.glb")
+    assert resp.status_code == 201, resp.text
+    rig = resp.json()
+    assert rig["ancestors"] == ["Root", "Armature"] and rig["up_axis"] == "+Y"
+    assert 1.5 < rig["height_m"] < 1.6 and rig["unit_scale"] == 1.0
 
 
 @pytest.mark.parametrize(

@@ -62,6 +62,9 @@ def rig_out(row: Rig) -> RigOut:
         mapping=row.mapping or {},
         height_m=s.get("height_m", 0.0),
         mesh=s.get("mesh"),
+        up_axis=s.get("up_axis"),
+        unit_scale=s.get("unit_scale"),
+        ancestors=s.get("ancestors"),
     )
 
 
