@@ -227,10 +227,6 @@ def cancel_job(
     return job_out(settings, job)
 
 
-def _finished_job(db: Session, tenant: Tenant, job_id: str):
-    return require_succeeded(jobs.get_job_for_tenant(db, tenant.id, job_id))
-
-
 def require_succeeded(job):
     """The job itself when it succeeded; 409 (job_failed, job_cancelled, job_not_finished) else."""
     job_id = job.id
@@ -270,6 +266,33 @@ _DOWNLOAD_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
+class ResultFiles:
+    """The dependency of the download routes: the caller's tenant, the database, the store and
+    the settings, and :meth:`serve`, which answers with one of a succeeded job's files."""
+
+    def __init__(
+        self,
+        tenant: Tenant = Depends(get_tenant),
+        db: Session = Depends(get_db),
+        store: ObjectStore = Depends(get_store),
+        settings: Settings = Depends(get_settings_dep),
+    ):
+        self.tenant, self.db, self.store, self.settings = tenant, db, store, settings
+
+    def serve(
+        self, job_id: str, name: str, what: str, suffix: str, field: str = "k", media: str = ""
+    ) -> Response:
+        """The tenant's job ``job_id``'s result file ``name`` as ``<job id><suffix>`` (media type
+        ``media``, default by the suffix's extension): 404 ``result_not_found`` naming ``what``
+        (``field``) when the job has no such file, 409 when the job did not succeed."""
+        job = require_succeeded(jobs.get_job_for_tenant(self.db, self.tenant.id, job_id))
+        key = jobs.result_files(self.store, job.id).get(name)
+        if key is None:
+            raise ApiError(404, "result_not_found", f"job {job.id} has no {what}", field=field)
+        media = media or _MEDIA[suffix.rsplit(".", 1)[1]]
+        return result_response(self.store, self.settings, key, f"{job.id}{suffix}", media)
+
+
 @router.get(
     "/{job_id}/alternatives/{k}.rig.{fmt}",
     summary="Download alternative k on the job's rig (spec output.rig) as BVH, FBX, GLB or USD",
@@ -280,15 +303,10 @@ def download_alternative_on_rig(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
     fmt: Literal["bvh", "fbx", "glb", "usd"] = Path(..., description="file format"),
-    tenant: Tenant = Depends(get_tenant),
-    db: Session = Depends(get_db),
-    store: ObjectStore = Depends(get_store),
-    settings: Settings = Depends(get_settings_dep),
+    results: ResultFiles = Depends(),
 ):
-    job = _finished_job(db, tenant, job_id)
     what = f"alternative {k} on a rig as {fmt} (spec output.rig)"
-    key = _result_key(store, job, f"alternatives/{k}.rig.{fmt}", what, "k")
-    return result_response(store, settings, key, f"{job.id}-{k}.rig.{fmt}", _MEDIA[fmt])
+    return results.serve(job_id, f"alternatives/{k}.rig.{fmt}", what, f"-{k}.rig.{fmt}")
 
 
 def result_response(
@@ -302,13 +320,6 @@ def result_response(
     return FileResponse(store.local_path(key), media_type=media_type, filename=filename)
 
 
-def _result_key(store: ObjectStore, job, name: str, what: str, field: str) -> str:
-    key = jobs.result_files(store, job.id).get(name)
-    if key is None:
-        raise ApiError(404, "result_not_found", f"job {job.id} has no {what}", field=field)
-    return key
-
-
 @router.get(
     "/{job_id}/alternatives/{k}.{fmt}",
     summary="Download alternative k as BVH, FBX or USD",
@@ -319,14 +330,10 @@ def download_alternative(
     job_id: str,
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
     fmt: Literal["bvh", "fbx", "usd"] = Path(..., description="file format"),
-    tenant: Tenant = Depends(get_tenant),
-    db: Session = Depends(get_db),
-    store: ObjectStore = Depends(get_store),
-    settings: Settings = Depends(get_settings_dep),
+    results: ResultFiles = Depends(),
 ):
-    job = _finished_job(db, tenant, job_id)
-    key = _result_key(store, job, f"alternatives/{k}.{fmt}", f"alternative {k} as {fmt}", "k")
-    return result_response(store, settings, key, f"{job.id}-{k}.{fmt}", _MEDIA[fmt])
+    what = f"alternative {k} as {fmt}"
+    return results.serve(job_id, f"alternatives/{k}.{fmt}", what, f"-{k}.{fmt}")
 
 
 @router.get(
@@ -341,16 +348,11 @@ def download_partner_on_rig(
     k: int = Path(..., ge=0, le=99, description="alternative index from 0"),
     partner: Literal["lead", "follow"] = Path(..., description="which dancer of the couple"),
     fmt: Literal["bvh", "glb", "fbx"] = Path(..., description="file format"),
-    tenant: Tenant = Depends(get_tenant),
-    db: Session = Depends(get_db),
-    store: ObjectStore = Depends(get_store),
-    settings: Settings = Depends(get_settings_dep),
+    results: ResultFiles = Depends(),
 ):
-    job = _finished_job(db, tenant, job_id)
     what = f"couple alternative {k}'s {partner} on a rig as {fmt}"
-    key = _result_key(store, job, f"alternatives/{k}/{partner}.rig.{fmt}", what, "k")
-    name = f"{job.id}-{k}-{partner}.rig.{fmt}"
-    return result_response(store, settings, key, name, _MEDIA[fmt])
+    name = f"alternatives/{k}/{partner}.rig.{fmt}"
+    return results.serve(job_id, name, what, f"-{k}-{partner}.rig.{fmt}")
 
 
 @router.get(
@@ -367,15 +369,10 @@ def download_partner(
         ..., description="lead or follow (BVH, FBX), or couple (GLB, FBX: both dancers)"
     ),
     fmt: Literal["bvh", "glb", "fbx"] = Path(..., description="file format"),
-    tenant: Tenant = Depends(get_tenant),
-    db: Session = Depends(get_db),
-    store: ObjectStore = Depends(get_store),
-    settings: Settings = Depends(get_settings_dep),
+    results: ResultFiles = Depends(),
 ):
-    job = _finished_job(db, tenant, job_id)
     what = f"couple alternative {k}'s {partner} as {fmt} (spec couple)"
-    key = _result_key(store, job, f"alternatives/{k}/{partner}.{fmt}", what, "k")
-    return result_response(store, settings, key, f"{job.id}-{k}-{partner}.{fmt}", _MEDIA[fmt])
+    return results.serve(job_id, f"alternatives/{k}/{partner}.{fmt}", what, f"-{k}-{partner}.{fmt}")
 
 
 @router.get(
@@ -390,13 +387,7 @@ def download_partner(
         409: PROBLEM,
     },
 )
-def download_timeline(
-    job_id: str,
-    tenant: Tenant = Depends(get_tenant),
-    db: Session = Depends(get_db),
-    store: ObjectStore = Depends(get_store),
-    settings: Settings = Depends(get_settings_dep),
-):
-    job = _finished_job(db, tenant, job_id)
-    key = _result_key(store, job, "timeline.json", "timeline", "job_id")
-    return result_response(store, settings, key, f"{job.id}-timeline.json", "application/json")
+def download_timeline(job_id: str, results: ResultFiles = Depends()):
+    return results.serve(
+        job_id, "timeline.json", "timeline", "-timeline.json", "job_id", "application/json"
+    )
