@@ -17,9 +17,16 @@ import numpy as np
 from dancegraph.errors import AudioError, ModelFileError
 from dancegraph.music.decode import DEFAULT_MAX_SECONDS, resample
 from dancegraph.music.params import AnalysisParams, EvidenceParams
-from dancegraph.music.signal import HOP, SR
+from dancegraph.music.signal import FPS, HOP, SR
 
-__all__ = ["Evidence", "Spectral", "beat_evidence", "librosa_times", "spectral"]
+__all__ = [
+    "Evidence",
+    "Spectral",
+    "beat_evidence",
+    "librosa_times",
+    "librosa_times_between",
+    "spectral",
+]
 
 
 @dataclass
@@ -105,6 +112,23 @@ def librosa_times(spec: Spectral) -> np.ndarray:
         onset_envelope=spec.onset_env, sr=SR, hop_length=HOP, trim=True
     )
     return librosa.frames_to_time(np.asarray(frames, dtype=np.int64), sr=SR, hop_length=HOP)
+
+
+def librosa_times_between(spec: Spectral, start_s: float, end_s: float, bpm: float) -> np.ndarray:
+    """(K,) s: librosa's tracker on the onset strength of ``spec`` between ``start_s`` and
+    ``end_s`` (s) alone, its tempo held at ``bpm``: where that stretch's own onsets put the
+    beats' phase, whatever else was analysed (the whole song's tracker picks one tempo for all,
+    and its path through a section depends on the rest). Empty under 1 s."""
+    import librosa
+
+    lo = max(int(np.floor(start_s * FPS)), 0)
+    env = spec.onset_env[lo : int(np.ceil(end_s * FPS)) + 1]
+    if len(env) < FPS:
+        return np.zeros(0)
+    _, frames = librosa.beat.beat_track(
+        onset_envelope=env, sr=SR, hop_length=HOP, bpm=bpm, trim=True
+    )
+    return (np.asarray(frames, dtype=np.float64) + lo) / FPS
 
 
 @dataclass

@@ -16,6 +16,8 @@ docs/music.md).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from dancegraph.music.bargroup import bar_clarity
@@ -28,6 +30,10 @@ from dancegraph.music.signal import (
     peak_near,
     zscore,
 )
+
+#: An independent tracker's beats (s) between two times (s) at a tempo (BPM): the second
+#: opinion on a section (:func:`~dancegraph.music.evidence.librosa_times_between`).
+Reference = Callable[[float, float, float], np.ndarray]
 
 __all__ = [
     "eighth_phase",
@@ -195,98 +201,98 @@ def half_beat_parity(
     return parity + clarity[0] - clarity[1]
 
 
-def _side_to_move(
-    off: np.ndarray, gain: np.ndarray, p: SlipParams
-) -> tuple[np.ndarray, bool, bool]:
-    """Which beats of a grid with slips may move: (K,) bool, whether they are an intro or outro
-    that moves as a whole (``edge``), and whether the two sides' gains differ clearly. ``off``
-    (K,) bool the beats off the first beat's pulse; ``gain`` (K,) :func:`off_beat_gain`."""
-    # the side on the off-beats: its notes start half a beat after its beats
-    gain_off, gain_on = float(gain[off].mean()), float(gain[~off].mean())
-    off_moves = gain_off > gain_on
-    clear = abs(gain_off - gain_on) > p.side_margin
-    # one slip: the two sides are the song's start and end; a short one is an intro or outro
-    off_short = off.sum() <= len(off) / 2
-    short = off if off_short else ~off
-    body_gain = gain_on if off_short else gain_off
-    body_off = clear and off_moves != off_short and body_gain > p.body_min_gain
-    edge = bool(
-        np.count_nonzero(np.diff(off)) == 1
-        and p.edge_beats <= short.sum() <= p.edge_share * len(off)
-        and not body_off
+def _edge_to_move(sections: list[np.ndarray], means: list[float], p: SlipParams) -> int | None:
+    """With one slip, the index (0 or 1) of an intro or outro that moves as a whole: ``p.
+    edge_beats`` to ``p.edge_max_beats`` beats against a body of ``p.body_beats`` or more,
+    unless the body is clearly the side off the beat (its mean gain above ``p.body_min_gain``
+    and more than ``p.side_margin`` above the edge's). ``sections`` the two sections' beat
+    indices, ``means`` their mean :func:`off_beat_gain`. None where no edge moves."""
+    if len(sections) != 2:
+        return None
+    short = int(len(sections[1]) < len(sections[0]))
+    body = 1 - short
+    body_off = means[body] > p.body_min_gain and means[body] - means[short] > p.side_margin
+    fits = p.edge_beats <= len(sections[short]) <= p.edge_max_beats
+    return short if fits and len(sections[body]) >= p.body_beats and not body_off else None
+
+
+def _section_moves(
+    t: np.ndarray, sections: list[np.ndarray], means: list[float], i: int,
+    reference: Reference, gain: np.ndarray, p: SlipParams,
+) -> bool:  # fmt: skip
+    """Whether section ``i`` of ``sections`` (beat indices into ``t`` (K,) s, split at the
+    slips) is on the off-beats by its own evidence: its notes start later after its beats than
+    in the sections next to it (mean :func:`off_beat_gain` ``gain`` (K,) against theirs), and
+    either by more than ``p.side_margin`` with its mean gain above ``p.min_gain``, or, over
+    ``p.edge_beats`` beats or more, the reference tracker on this section alone (``reference``)
+    agrees; a body
+    (``p.body_beats`` or more and ``p.body_ratio`` times the beats next to it) only on a gain
+    above ``p.body_min_gain`` (see :func:`mend_half_beat_slips`)."""
+    sec = sections[i]
+    near = np.concatenate([sections[j] for j in (i - 1, i + 1) if 0 <= j < len(sections)])
+    later = means[i] - float(gain[near].mean())
+    if later <= 0.0:
+        return False
+    # a body: long, and longer than the sections next to it by far (they slipped from it)
+    if len(sec) >= max(p.body_beats, p.body_ratio * len(near)):
+        return means[i] > p.body_min_gain and later > p.side_margin
+    if means[i] > p.min_gain and later > p.side_margin:
+        return True
+    if len(sec) < p.edge_beats:
+        return False
+    nxt = next_intervals(t)[sec]
+    shifted = t[sec] + 0.5 * nxt
+    lo, hi = t[sec[0]] - 0.05, shifted[-1] + 0.05
+    ref = np.asarray(reference(lo, hi, 60.0 / float(np.median(nxt))))
+    ref = ref[(ref >= lo) & (ref <= hi)]
+    level = np.median(np.diff(ref)) / np.median(nxt) if len(ref) > 2 else 0.0
+    return any(a <= level <= b for a, b in (p.same_level, p.half_level)) and (
+        beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[sec]) + p.agree_margin
     )
-    return (short if edge else (off if off_moves else ~off)), edge, bool(clear)
-
-
-def _moved_sections(
-    t: np.ndarray,
-    to_move: np.ndarray,
-    reference: np.ndarray,
-    gain: np.ndarray,
-    edge: bool,
-    clear: bool,
-    p: SlipParams,
-) -> tuple[np.ndarray, int]:
-    """The beats ``t`` (K,) with the sections of ``to_move`` (K,) bool moved half an interval
-    where the reference tracker or the gain agrees (see :func:`mend_half_beat_slips`): (moved
-    times (K,), number of beats moved)."""
-    nxt = next_intervals(t)
-    idx = np.flatnonzero(to_move)
-    moved = t.copy()
-    n_moved = 0
-    for seg in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
-        shifted = t[seg] + 0.5 * nxt[seg]
-        lo, hi = t[seg[0]] - 0.05, shifted[-1] + 0.05
-        ref = reference[(reference >= lo) & (reference <= hi)]
-        level = np.median(np.diff(ref)) / np.median(nxt[seg]) if len(ref) > 2 else 0.0
-        agree = (
-            any(a <= level <= b for a, b in (p.same_level, p.half_level))
-            and beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[seg]) + p.agree_margin
-        )
-        if edge or agree or (clear and gain[seg].mean() > p.min_gain):
-            moved[seg] = shifted
-            n_moved += len(seg)
-    return moved, n_moved
 
 
 def mend_half_beat_slips(
-    times: np.ndarray, reference: np.ndarray, gain: np.ndarray, p: SlipParams = SlipParams()
+    times: np.ndarray, reference: Reference, gain: np.ndarray, p: SlipParams = SlipParams()
 ) -> tuple[np.ndarray, int]:
     """Put back on the beat the sections a tracker put on the off-beats.
 
     A tracker can lock onto the off-beats for a section (a syncopated bass without drums) and come
     back later: the grid slips by half a beat and back at a steady tempo, which the music does not
-    do (slips: :func:`find_slips`, each taken at the centre of its window). The beats on one side of
-    the slips — the side whose notes start more after its beats than the other's (mean ``gain``
-    (K,), :func:`off_beat_gain`) — are moved by half an interval, section by section, where an
-    independent tracker's beats ``reference`` (s) at the same tempo there or at half of it (median
-    interval ratio within ``p.same_level`` or ``p.half_level``: at half the tempo its
-    beats fall on every other beat of one grid, not the other's, an F-measure of 2/3 against 0)
-    agree with the moved beats clearly better (F-measure at 70 ms, by ``p.agree_margin``) than
-    with the tracked ones, or where the section's mean ``gain`` is above ``p.min_gain`` and
-    the two sides' mean gains differ by more than ``p.side_margin`` (the other tracker often
-    follows the same off-beats). A slip bounds the section, so it needs less evidence than a whole
-    grid (:func:`mend_off_beat_grid`). With one slip in the song, the shorter side — an intro or
-    outro of ``p.edge_beats`` beats up to ``p.edge_share`` of the song — moves unless
-    the gain says the body is the side off the beat (its notes start after its beats: gain above
-    ``p.body_min_gain``, and clearly more so than the short side's): the body of a song sets
-    its pulse, and sparse intros and outros (chord stabs on the off-beats, no drums) are where the
-    trackers go astray. Chords comped on the off-beats raise the gain of a body on the beat, so the
-    body gives way only to a clear gain. A body whose notes start on its beats does not give way to
-    an intro whose notes start there even more clearly. Shorter end parts stay (most single slips
-    that near an end are end effects on a correct grid). At the section borders a beat is dropped or
-    inserted so that every interval stays within 0.75-1.25 of the local one. ``times`` (K,) s.
-    Returns (beat times (K',), number of beats moved)."""
+    do (slips: :func:`find_slips`, each taken at the centre of its window). Each section between
+    slips is judged by its own evidence against its neighbours', so that the decision does not
+    depend on where the analysis started: it moves by half an interval when its notes start
+    clearly more after its beats than in the sections next to it (mean ``gain`` (K,),
+    :func:`off_beat_gain`, more than ``p.side_margin`` higher) and either its own mean gain is
+    above ``p.min_gain`` (``p.body_min_gain`` for a body of ``p.body_beats`` or more: chords comped
+    on the off-beats raise the gain of a body on the beat) or an independent tracker run on the
+    section alone at its tempo (``reference(start s, end s, bpm)`` -> beat times s; at half the
+    tempo, median interval ratio within ``p.half_level``, its beats fall on every other beat of one
+    grid, not the other's, an F-measure of 2/3 against 0) agrees with the moved beats clearly
+    better (F-measure at 70 ms, by ``p.agree_margin``) than with the tracked ones. With one slip,
+    an intro or outro of ``p.edge_beats``-``p.edge_max_beats`` beats against a body of
+    ``p.body_beats`` or more moves instead, on no cue, unless the body is clearly the side off the
+    beat (:func:`_edge_to_move`): the body of a song sets its pulse, and sparse intros and outros
+    (chord stabs on the off-beats, no drums) are where the trackers go astray. Shorter end parts
+    stay (most single slips that near an end are end effects on a correct grid). At the section
+    borders a beat is dropped or inserted so that every interval stays within 0.75-1.25 of the
+    local one. ``times`` (K,) s. Returns (beat times (K',), number of beats moved)."""
     t = np.asarray(times, dtype=np.float64)
     centres, _ = find_slips(t, p)
-    offset = np.zeros(len(t))  # 0 or 0.5 beat against the first beat's pulse
-    for k in centres:
-        offset[k:] = (offset[k:] + 0.5) % 1.0
-    off = offset > 0.25
-    if not off.any():
+    if not len(centres):
         return t, 0
-    to_move, edge, clear = _side_to_move(off, gain, p)
-    moved, n_moved = _moved_sections(t, to_move, reference, gain, edge, clear, p)
+    sections = np.split(np.arange(len(t)), centres)
+    means = [float(gain[sec].mean()) for sec in sections]
+    edge = _edge_to_move(sections, means, p)
+    nxt = next_intervals(t)
+    moved, n_moved = t.copy(), 0
+    for i, sec in enumerate(sections):
+        if edge is None:
+            go = _section_moves(t, sections, means, i, reference, gain, p)
+        else:
+            go = i == edge
+        if go:
+            moved[sec] = t[sec] + 0.5 * nxt[sec]
+            n_moved += len(sec)
     if not n_moved:
         return t, 0
     return _rejoin(moved, t), n_moved
@@ -301,46 +307,70 @@ def find_slips(times: np.ndarray, p: SlipParams = SlipParams()) -> tuple[np.ndar
     frames, so at 172 BPM (17.4 frames) its intervals alternate 17 and 18 frames: their median (17)
     is 2.5 % short and the drift against it grows by a quarter beat every ten beats: false slips in
     a steady grid. The interquartile mean keeps the fraction and still ignores the slip's own odd
-    intervals. ``times`` (K,) s. Returns (centres, splits), int arrays (S,): per slip the beat at
-    the centre of the window it was measured over, and the beat after the window's most irregular
-    interval (where the grid jumped: the first beat of the new section)."""
+    intervals. Where no slip is found that way, a slower slide is looked for the same way over
+    ``2 * p.slow_window`` beats: a decoder can also slide onto the off-beats over ten beats or so
+    (each interval a few per cent short), too spread for the short window, which then found the
+    slip or not depending on where the analysis started. ``times`` (K,) s. Returns (centres,
+    splits), int arrays (S,), in order: per slip the beat at the centre of the window it was
+    measured over, and the beat after the window's most irregular interval (where the grid
+    jumped: the first beat of the new section)."""
     t = np.asarray(times, dtype=np.float64)
-    w = p.window
-    centres: list[int] = []
-    splits: list[int] = []
-    if len(t) < 4 * w + 2:
-        return np.asarray(centres, dtype=np.int64), np.asarray(splits, dtype=np.int64)
-    ibi = np.diff(t)
-    # the running interquartile mean: the middle half of each sorted window of intervals
-    n = p.context
-    windows = np.lib.stride_tricks.sliding_window_view(np.pad(ibi, n // 2, mode="edge"), n)
-    local = np.sort(windows, axis=1)[:, n // 4 : n - n // 4].mean(axis=1)
+    found: list[tuple[int, int]] = []
+    if len(t) >= 4 * p.window + 2:
+        ibi = np.diff(t)
+        # the running interquartile mean: the middle half of each sorted window of intervals
+        n = p.context
+        windows = np.lib.stride_tricks.sliding_window_view(np.pad(ibi, n // 2, mode="edge"), n)
+        local = np.sort(windows, axis=1)[:, n // 4 : n - n // 4].mean(axis=1)
+        for w, steady in ((p.window, np.inf), (p.slow_window, p.slow_steady)):
+            found += _scan_slips(ibi, local, w, steady, [c for c, _ in found], p)
+    found.sort()
+    return (
+        np.asarray([c for c, _ in found], dtype=np.int64),
+        np.asarray([k for _, k in found], dtype=np.int64),
+    )
+
+
+def _scan_slips(
+    ibi: np.ndarray, local: np.ndarray, w: int, steady: float, taken: list[int], p: SlipParams
+) -> list[tuple[int, int]]:
+    """The slips (centre, split) of :func:`find_slips` over windows of ``2 * w`` beats of the
+    intervals ``ibi`` (K-1,) s against the running ``local`` (K-1,) s, away from the windows of
+    the slips already found (centres ``taken``, found with windows of up to ``w`` beats), where
+    the phase drift over the ``w`` beats before and after the window stays within ``steady``
+    beats (a slide between two steady phases, not a tempo that keeps changing)."""
     drift = np.r_[0.0, np.cumsum(ibi / local - 1.0)]  # (K,) beats the grid has slipped by
 
     def irregular_at(k: int) -> np.ndarray:
         return np.abs(ibi[k - w : k + w] / local[k - w : k + w] - 1.0)
 
-    def slide(k: int) -> float:  # the largest phase change over 4 intervals of the window
-        return float(np.abs(drift[k - w + 4 : k + w + 1] - drift[k - w : k + w - 3]).max())
+    def slide(k: int) -> float:  # the largest phase change over w intervals of the window
+        return float(np.abs(drift[k : k + w + 1] - drift[k - w : k + 1]).max())
 
+    def drifting(k: int) -> bool:  # the phase moves before or after the window
+        ends = (drift[max(k - 2 * w, 0) : k - w + 1], drift[k + w : k + 2 * w + 1])
+        return any(np.ptp(d) > steady for d in ends)
+
+    found: list[tuple[int, int]] = []
     k = w
-    while k < len(t) - w:
+    while k < len(drift) - w:
         step = abs(drift[k + w] - drift[k - w])
         before = ibi[max(k - w - 8, 0) : k - w]
         after = ibi[k + w : k + w + 8]
         if (
-            p.min <= step <= p.max
+            all(abs(k - c) >= 2 * w for c in taken)
+            and p.min <= step <= p.max
+            and not drifting(k)
             and len(before)
             and len(after)
             and abs(np.median(after) / np.median(before) - 1.0) <= p.same_tempo
             and (irregular_at(k).max() >= p.min_jump or slide(k) >= p.min_concentration * step)
         ):
-            centres.append(k)
-            splits.append(k - w + int(np.argmax(irregular_at(k))) + 1)
+            found.append((k, k - w + int(np.argmax(irregular_at(k))) + 1))
             k += 2 * w
         else:
             k += 1
-    return np.asarray(centres, dtype=np.int64), np.asarray(splits, dtype=np.int64)
+    return found
 
 
 def _rejoin(moved: np.ndarray, times: np.ndarray) -> np.ndarray:

@@ -236,6 +236,12 @@ class SlipParams:
 
     #: beats each side of a slip
     window: int = 4
+    #: beats each side of a slower slide, looked for where the window found none (Vibe Ace
+    #: from 20.5 s: 0.4 beat over 10 beats, each interval 4-9 % short)
+    slow_window: int = 8
+    #: ... between phases steady to this (beats) over slow_window beats before and after (a
+    #: classical ritardando drifts on: GTZAN classical.00005 0.2 beat on after its "slide")
+    slow_steady: float = 0.12
     #: phase change (beats) over 2 * window beats that counts as a slip ...
     min: float = 0.3
     #: ... up to this (beats)
@@ -258,9 +264,17 @@ class SlipParams:
     side_margin: float = 0.2
     #: one slip: an intro/outro of this many beats or more ...
     edge_beats: int = 12
-    #: ... and at most this share of the beats moves (the body sets the pulse)
-    edge_share: float = 0.25
-    #: a slide: 4 of the window's intervals hold this share of its phase change (a steady
+    #: ... up to this many (beats: the generated intros/outros a tracker put on the off-beats
+    #: were 8-25 beats; at 32 the first 32 beats of Hungarian Dance, before its tempo change,
+    #: moved with a second of silence before it and not without) moves on no cue ...
+    edge_max_beats: int = 28
+    #: ... against a body of this many beats or more (16 bars of 4): the body sets the pulse; in
+    #: beats, not a share of the song, so that an excerpt decides as the whole song does
+    body_beats: int = 64
+    #: a section this many times as long as its neighbours together is a body too: it gives way
+    #: to its gain alone (generated 16010: a 146-beat body between 7- and 16-beat ends)
+    body_ratio: float = 2.0
+    #: a slide: half the window's intervals hold this share of its phase change (a steady
     #: grid's frame jitter spreads its drift evenly; a decoder's slide concentrates it) ...
     min_concentration: float = 0.75
     #: ... or a jump: one interval this far (relative) off the running one

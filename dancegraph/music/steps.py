@@ -21,7 +21,7 @@ import numpy as np
 
 from dancegraph.music import barpointer
 from dancegraph.music.bargroup import group_beats
-from dancegraph.music.evidence import Evidence
+from dancegraph.music.evidence import Evidence, librosa_times_between
 from dancegraph.music.levels import (
     dotted_pulse,
     octave_switch,
@@ -201,7 +201,11 @@ def _swing_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid,
 def _slip_step(grid: Grid, ev: Evidence, params: AnalysisParams) -> tuple[Grid, list[str]]:
     """Move back the sections a tracker put on the off-beats (:func:`mend_half_beat_slips`)."""
     gain = off_beat_gain(grid.times, ev.spec.onset_env, ev.spec.chroma)
-    times, moved = mend_half_beat_slips(grid.times, ev.librosa_times(), gain, params.slip)
+
+    def reference(lo: float, hi: float, bpm: float) -> np.ndarray:
+        return librosa_times_between(ev.spec, lo, hi, bpm)
+
+    times, moved = mend_half_beat_slips(grid.times, reference, gain, params.slip)
     if not moved:
         return grid, []
     note = (
