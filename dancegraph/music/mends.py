@@ -217,11 +217,11 @@ def _edge_to_move(sections: list[np.ndarray], means: list[float], p: SlipParams)
 
 
 def _section_moves(
-    t: np.ndarray, sections: list[np.ndarray], means: list[float], i: int,
+    t: np.ndarray, nxt: np.ndarray, sections: list[np.ndarray], means: list[float], i: int,
     reference: Reference, gain: np.ndarray, p: SlipParams,
 ) -> bool:  # fmt: skip
     """Whether section ``i`` of ``sections`` (beat indices into ``t`` (K,) s, split at the
-    slips) is on the off-beats by its own evidence: its notes start later after its beats than
+    slips; ``nxt`` (K,) s :func:`next_intervals` of ``t``) is on the off-beats by its own evidence: its notes start later after its beats than
     in the sections next to it (mean :func:`off_beat_gain` ``gain`` (K,) against theirs), and
     either by more than ``p.side_margin`` with its mean gain above ``p.min_gain``, or, over
     ``p.edge_beats`` beats or more, the reference tracker on this section alone (``reference``)
@@ -240,12 +240,12 @@ def _section_moves(
         return True
     if len(sec) < p.edge_beats:
         return False
-    nxt = next_intervals(t)[sec]
-    shifted = t[sec] + 0.5 * nxt
+    step = nxt[sec]
+    shifted = t[sec] + 0.5 * step
     lo, hi = t[sec[0]] - 0.05, shifted[-1] + 0.05
-    ref = np.asarray(reference(lo, hi, 60.0 / float(np.median(nxt))))
+    ref = np.asarray(reference(lo, hi, 60.0 / float(np.median(step))))
     ref = ref[(ref >= lo) & (ref <= hi)]
-    level = np.median(np.diff(ref)) / np.median(nxt) if len(ref) > 2 else 0.0
+    level = np.median(np.diff(ref)) / np.median(step) if len(ref) > 2 else 0.0
     return any(a <= level <= b for a, b in (p.same_level, p.half_level)) and (
         beat_f_measure(ref, shifted) >= beat_f_measure(ref, t[sec]) + p.agree_margin
     )
@@ -287,7 +287,7 @@ def mend_half_beat_slips(
     moved, n_moved = t.copy(), 0
     for i, sec in enumerate(sections):
         if edge is None:
-            go = _section_moves(t, sections, means, i, reference, gain, p)
+            go = _section_moves(t, nxt, sections, means, i, reference, gain, p)
         else:
             go = i == edge
         if go:
