@@ -236,11 +236,11 @@ class SlipParams:
 
     #: beats each side of a slip
     window: int = 4
-    #: beats each side of a slower slide, looked for where the window found none (Vibe Ace
-    #: from 20.5 s: 0.4 beat over 10 beats, each interval 4-9 % short)
+    #: beats each side of a slower slide, looked for where the window found none (a decoder
+    #: can slide onto the off-beats over ten beats, each interval a few per cent short)
     slow_window: int = 8
     #: ... between phases steady to this (beats) over slow_window beats before and after (a
-    #: classical ritardando drifts on: GTZAN classical.00005 0.2 beat on after its "slide")
+    #: ritardando keeps drifting after its "slide"; a slip does not)
     slow_steady: float = 0.12
     #: phase change (beats) over 2 * window beats that counts as a slip ...
     min: float = 0.3
@@ -264,15 +264,14 @@ class SlipParams:
     side_margin: float = 0.2
     #: one slip: an intro/outro of this many beats or more ...
     edge_beats: int = 12
-    #: ... up to this many (beats: the generated intros/outros a tracker put on the off-beats
-    #: were 8-25 beats; at 32 the first 32 beats of Hungarian Dance, before its tempo change,
-    #: moved with a second of silence before it and not without) moves on no cue ...
+    #: ... up to this many (beats: the intros/outros trackers put on the off-beats are shorter;
+    #: a longer first part is as likely a tempo change read as a slip) moves on no cue ...
     edge_max_beats: int = 28
     #: ... against a body of this many beats or more (16 bars of 4): the body sets the pulse; in
     #: beats, not a share of the song, so that an excerpt decides as the whole song does
     body_beats: int = 64
     #: a section this many times as long as its neighbours together is a body too: it gives way
-    #: to its gain alone (generated 16010: a 146-beat body between 7- and 16-beat ends)
+    #: to its gain alone (a long body between two short slipped ends)
     body_ratio: float = 2.0
     #: a slide: half the window's intervals hold this share of its phase change (a steady
     #: grid's frame jitter spreads its drift evenly; a decoder's slide concentrates it) ...
@@ -311,8 +310,8 @@ class GroupParams:
     log_restart_glitch: float = -2.0
     #: mean downbeat evidence a bar (z-units) by which the sections on both sides of a bar
     #: restart must each prefer their own phase for it to stand
-    #: (:func:`~dancegraph.music.bargroup.section_phases`): on full-length songs the restarts
-    #: that stand show 1.8-2.8 a bar, the ones it drops 0.4-1.1 (docs/music.md)
+    #: (:func:`~dancegraph.music.bargroup.section_phases`): between the restarts full-length
+    #: songs need and the weak ones a whole song bought that its excerpts did not (docs/music.md)
     min_section_gain: float = 1.5
     #: a glitch: an interval off the running median interval by this share ...
     glitch_dev: float = 0.15
