@@ -6,8 +6,6 @@ back with ufbx (an independent reader, in a child Python): two armatures, ``lead
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +17,7 @@ from dancegraph.motion.fbx import FbxExporter, fbx_available
 from dancegraph.motion.fk import forward_kinematics
 from tests.couple.test_couple import couple  # noqa: F401  (the module fixture: a couple graph)
 from tests.demo import demo_song
+from tests.motion.ufbx_child import ufbx_json
 
 pytest.importorskip("ufbx")
 pytestmark = pytest.mark.skipif(
@@ -71,14 +70,7 @@ def check_couple_fbx(fbx: Path, dancers: dict, frames: list[int]) -> None:
     """Assert ``fbx`` holds one armature per dancer (``{name: Motion}``, one rate), named as
     the dancer, joints ``<name>:<joint>`` within 1 mm of the Motion's FK at ``frames``, the
     hips 0.2-1.9 m apart at the middle one."""
-    proc = subprocess.run(
-        [sys.executable, "-c", _READER, str(fbx), json.dumps(frames)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    got = json.loads(proc.stdout)
+    got = ufbx_json(_READER, fbx, frames)
     fps = next(iter(dancers.values())).fps
     assert got["fps"] == pytest.approx(fps) and got["unit_meters"] == pytest.approx(1.0)
     assert sorted(got["armatures"]) == sorted(dancers)

@@ -7,11 +7,8 @@ test run with it.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +20,7 @@ from dancegraph.motion.bvh import read_bvh, write_bvh
 from dancegraph.motion.fbx import FbxError, FbxExporter, bvh_to_fbx, fbx_available
 from dancegraph.motion.fk import forward_kinematics
 from dancegraph.motion.skeleton import Motion
+from tests.motion.ufbx_child import ufbx_json
 
 pytest.importorskip("ufbx")
 pytestmark = pytest.mark.skipif(
@@ -77,14 +75,7 @@ print(json.dumps(out))
 
 def read_fbx(path: Path, frames: list[int]) -> dict:
     """The FBX's bones (names, parent names), timing, and world positions (m) at ``frames``."""
-    proc = subprocess.run(
-        [sys.executable, "-c", _UFBX_READER, str(path), json.dumps([int(f) for f in frames])],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, f"ufbx could not read {path}: {proc.stderr[-2000:]}"
-    return json.loads(proc.stdout)
+    return ufbx_json(_UFBX_READER, path, frames)
 
 
 def check_fbx_against_fk(fbx_path: Path, motion: Motion, n_samples: int = 8) -> float:

@@ -8,10 +8,8 @@ independent FBX reader, in a child process because its binding can crash on exit
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -31,6 +29,7 @@ from dancegraph.motion.retarget import (
 )
 from dancegraph.motion.rig import SIDES, foot_points, load_rig
 from tests.motion.rigs import GOOD_BVH_RIGS, GOOD_RIGS, GOOD_RIGS_MESH, PARENTED_RIGS
+from tests.motion.ufbx_child import ufbx_json
 
 needs_blender = pytest.mark.skipif(not fbx_available(), reason="Blender not installed")
 ALL_RIGS = [
@@ -301,15 +300,7 @@ def test_fbx_on_rig_reads_back_with_ufbx(rig_dir, salsa_clip, tmp_path, name):
     summary = write_on_rig(motion, rig, rig_dir / name, tmp_path / "dance.fbx")
     assert summary["frames"] == 180
     frames = [0, 90, 179]
-    proc = subprocess.run(
-        [sys.executable, "-c", _UFBX_READER, str(tmp_path / "dance.fbx"), json.dumps(frames)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ},
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    fbx = json.loads(proc.stdout)
+    fbx = ufbx_json(_UFBX_READER, tmp_path / "dance.fbx", frames)
     assert fbx["fps"] == pytest.approx(60.0)
     assert round(fbx["duration"] * fbx["fps"]) + 1 == 180
     pos, _ = forward_kinematics(motion)
@@ -454,7 +445,7 @@ def test_rigs_under_parent_transforms_land_where_they_stood(rig_dir, salsa_clip,
     got["glb"] = np.stack([[w[names.index(n)][:3, 3] for n in rig.skeleton.names] for w in worlds])
     got["usda"] = _usd_world(files["usda"], frames)
     few = frames[::10]
-    fbx = _ufbx_positions(files["fbx"], few)
+    fbx = ufbx_json(_UFBX_READER, files["fbx"], few)["positions"]
     got["fbx"] = np.array([[fbx[str(f)][n] for n in rig.skeleton.names] for f in few])
     for fmt, positions in got.items():
         checked = frames if fmt != "fbx" else few
@@ -488,18 +479,6 @@ def _usd_world(path, frames: list[int]) -> np.ndarray:
         xf = UsdGeom.XformCache(Usd.TimeCode(f))
         out.append(np.array(query.ComputeJointWorldTransforms(xf))[:, 3, :3])
     return np.stack(out)
-
-
-def _ufbx_positions(path, frames: list[int]) -> dict:
-    """Bone world positions per frame from ufbx alone (in a child process)."""
-    proc = subprocess.run(
-        [sys.executable, "-c", _UFBX_READER, str(path), json.dumps(frames)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads(proc.stdout)["positions"]
 
 
 def test_a_misplaced_output_is_an_error(rig_dir, salsa_clip, tmp_path):

@@ -19,6 +19,14 @@ from tests.services.test_worker_couple import couple_library, upload_rig
 pytest.importorskip("ufbx")
 
 
+def _download(api, url: str, path: Path) -> Path:
+    """The result at ``url`` (200 asserted), written to ``path``."""
+    resp = api.get(url)
+    assert resp.status_code == 200, resp.text
+    path.write_bytes(resp.content)
+    return path
+
+
 def test_a_couple_job_gets_an_fbx_per_dancer(sqlite_api, salsa_dir: Path, tmp_path: Path):
     from tests.couple.test_couple_fbx import check_couple_fbx
     from tests.motion.test_fbx import check_fbx_against_fk
@@ -41,20 +49,17 @@ def test_a_couple_job_gets_an_fbx_per_dancer(sqlite_api, salsa_dir: Path, tmp_pa
         dancers = {}
         for partner in ("lead", "follow"):
             base = f"/v1/jobs/{job_id}/alternatives/{k}/{partner}"
-            got = {}
-            for fmt in ("bvh", "fbx"):
-                resp = sqlite_api.get(f"{base}.{fmt}")
-                assert resp.status_code == 200, resp.text
-                got[fmt] = tmp_path / f"{k}-{partner}.{fmt}"
-                got[fmt].write_bytes(resp.content)
+            got = {
+                fmt: _download(sqlite_api, f"{base}.{fmt}", tmp_path / f"{k}-{partner}.{fmt}")
+                for fmt in ("bvh", "fbx")
+            }
             dancers[partner] = read_bvh(got["bvh"])
             worst = check_fbx_against_fk(got["fbx"], dancers[partner])
             assert worst < 1e-3
-        both = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/{k}/couple.fbx")
-        assert both.status_code == 200, both.text
-        (tmp_path / f"{k}-couple.fbx").write_bytes(both.content)
+        url = f"/v1/jobs/{job_id}/alternatives/{k}/couple.fbx"
+        both = _download(sqlite_api, url, tmp_path / f"{k}-couple.fbx")
         n = dancers["lead"].n_frames
-        check_couple_fbx(tmp_path / f"{k}-couple.fbx", dancers, [0, n // 3, n // 2, n - 1])
+        check_couple_fbx(both, dancers, [0, n // 3, n // 2, n - 1])
     missing = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/2/follow.fbx")
     assert missing.status_code == 404 and missing.json()["code"] == "result_not_found"
 
@@ -65,15 +70,12 @@ def test_a_couple_job_gets_each_dancer_on_its_rig_as_fbx(
     """``output.rig`` (lead) and ``output.follow_rig`` (follow) with ``fbx``: each dancer's
     ``alternatives/<k>/<partner>.rig.fbx`` is the rig's own file posed in Blender, every joint
     within 1 mm of its ``<partner>.rig.bvh`` (read at the rig's unit scale) at three frames."""
-    import json
-    import subprocess
-    import sys
-
     import numpy as np
 
     from dancegraph.motion.fk import forward_kinematics
     from dancegraph.motion.rig import load_rig
     from tests.motion.test_retarget import _UFBX_READER
+    from tests.motion.ufbx_child import ufbx_json
     from tests.services.conftest import TEST_DATASET
 
     if not fbx_available():
@@ -90,22 +92,14 @@ def test_a_couple_job_gets_each_dancer_on_its_rig_as_fbx(
     assert pipeline.run_fbx(job_id, sqlite_api.settings).status == "succeeded"
     rig = load_rig(rig_file)
     for partner in ("lead", "follow"):
-        got = {}
-        for fmt in ("bvh", "fbx"):
-            resp = sqlite_api.get(f"/v1/jobs/{job_id}/alternatives/0/{partner}.rig.{fmt}")
-            assert resp.status_code == 200, resp.text
-            got[fmt] = tmp_path / f"{partner}.rig.{fmt}"
-            got[fmt].write_bytes(resp.content)
+        base = f"/v1/jobs/{job_id}/alternatives/0/{partner}.rig"
+        got = {
+            fmt: _download(sqlite_api, f"{base}.{fmt}", tmp_path / f"{partner}.rig.{fmt}")
+            for fmt in ("bvh", "fbx")
+        }
         motion = read_bvh(got["bvh"], scale=rig.unit_scale)
         frames = [0, motion.n_frames // 2, motion.n_frames - 1]
-        proc = subprocess.run(
-            [sys.executable, "-c", _UFBX_READER, str(got["fbx"]), json.dumps(frames)],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        fbx = json.loads(proc.stdout)
+        fbx = ufbx_json(_UFBX_READER, got["fbx"], frames)
         assert round(fbx["duration"] * fbx["fps"]) + 1 == motion.n_frames
         positions, _ = forward_kinematics(motion)
         for f in frames:
